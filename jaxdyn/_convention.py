@@ -1,0 +1,63 @@
+"""The single calling convention for user callbacks.
+
+Every user function receives its arguments in the order ``(t, q, qd, p)``, dropping those it
+cannot depend on: ``T(q, qd, p)``, ``V(q, p)``, ``D(q, qd, p)``, ``Q(q, qd, p)`` for an
+autonomous system, and the same with ``t`` first when the system is declared
+``time_dependent=True`` (rheonomic kinematics, a driven support, a time-varying force).
+Parameters ``p`` are always an argument, never closed over, so that `jax.grad`, `jax.vmap` and
+optax see them.
+"""
+
+import inspect
+
+import jax.numpy as jnp
+
+VELOCITY_ARGS = ("q", "qd", "p")
+CONFIGURATION_ARGS = ("q", "p")
+
+
+def call(fn, name: str, time_dependent: bool, argnames: tuple[str, ...], t, *args):
+    """Call a user callback following the convention, with a clear error if its signature
+    cannot accept the arguments."""
+    full = (t, *args) if time_dependent else args
+    names = ("t", *argnames) if time_dependent else argnames
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):  # builtins, some C callables: nothing to check
+        signature = None
+    if signature is not None:
+        try:
+            signature.bind(*full)
+        except TypeError as e:
+            hint = (
+                "If it does not depend on time, pass time_dependent=False."
+                if time_dependent
+                else "If it depends on time, pass time_dependent=True and take t first."
+            )
+            raise ValueError(
+                f"{name} is called as {name.split()[-1]}({', '.join(names)}) "
+                f"(time_dependent={time_dependent}), but its signature is "
+                f"{signature}: {e}. {hint}"
+            ) from None
+    return fn(*full)
+
+
+def scalar(value, name: str):
+    """Check that an energy-like callback returned a scalar."""
+    value = jnp.asarray(value)
+    if value.shape != ():
+        raise ValueError(
+            f"{name} must return a scalar, but returned an array of shape {value.shape}. "
+            "Sum the contributions (e.g. jnp.sum) so that it returns one number."
+        )
+    if not jnp.issubdtype(value.dtype, jnp.inexact):
+        raise ValueError(f"{name} must return a floating-point scalar, got dtype {value.dtype}.")
+    return value
+
+
+def vector(value, name: str, shape: tuple[int, ...]):
+    """Check that a vector-valued callback returned an array of the expected shape."""
+    value = jnp.asarray(value)
+    if value.shape != shape:
+        raise ValueError(f"{name} must return an array of shape {shape}, got shape {value.shape}.")
+    return value

@@ -1,0 +1,49 @@
+"""The interface every formulation implements, and the only thing `simulate` knows about."""
+
+import abc
+
+import equinox as eqx
+
+from ._errors import reports_state
+from ._linalg import solve_mass_matrix
+from ._state import over_states
+
+
+class AbstractDynamics(eqx.Module):
+    """Equations of motion in the form
+
+        q̇ = K(t, q, p) u,        M(t, q, p) u̇ = f(t, q, u, p)
+
+    with coordinates q (n,) and speeds u (m,). For Lagrange's equations u = q̇ and K = I; the
+    Gibbs–Appell and Kane formulations may choose other speeds (and fewer of them than
+    coordinates, for nonholonomic systems).
+
+    Subclasses implement `coordinate_rates` and `mass_matrix_and_forcing`; the accelerations
+    follow by a Cholesky solve. All public methods take ``(t, q, u, p=None)`` and also accept
+    stacked states (leading axes broadcast).
+    """
+
+    @abc.abstractmethod
+    def coordinate_rates(self, t, q, u, p=None):
+        """q̇ = K(t, q, p) u."""
+
+    @abc.abstractmethod
+    def mass_matrix_and_forcing(self, t, q, u, p=None):
+        """(M, f) of M u̇ = f, formed together since they share their derivative passes."""
+
+    @over_states("(),(n),(m)->(m,m)")
+    def mass_matrix(self, t, q, u, p=None):
+        """The mass matrix M of M u̇ = f (symmetric positive definite)."""
+        return self.mass_matrix_and_forcing(t, q, u, p)[0]
+
+    @over_states("(),(n),(m)->(m)")
+    def forcing(self, t, q, u, p=None):
+        """The forcing f of M u̇ = f: every term of the equations except M u̇."""
+        return self.mass_matrix_and_forcing(t, q, u, p)[1]
+
+    @reports_state
+    @over_states("(),(n),(m)->(m)")
+    def accelerations(self, t, q, u, p=None):
+        """u̇ = M⁻¹ f by Cholesky; an error names the state if M is singular there."""
+        mass_matrix, forcing = self.mass_matrix_and_forcing(t, q, u, p)
+        return solve_mass_matrix(mass_matrix, forcing, t, q, u)

@@ -1,0 +1,184 @@
+"""Lagrange's equations of the second kind, formed by automatic differentiation."""
+
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._convention import CONFIGURATION_ARGS, VELOCITY_ARGS, call, scalar, vector
+from .._dynamics import AbstractDynamics
+from .._state import check_vector, over_states
+
+
+class Lagrangian(AbstractDynamics):
+    r"""A holonomic system in independent coordinates, from its energies.
+
+    Lagrange's equations of the second kind, with L = T − V,
+
+        d/dt ∂L/∂q̇ − ∂L/∂q = Q − ∂D/∂q̇,
+
+    are expanded as M q̈ = f with
+
+        M = ∂²L/∂q̇²,    f = Q − ∂D/∂q̇ + ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t.
+
+    One forward pass linearises (∂L/∂q̇, ∂L/∂q) (reverse-mode gradients); M is that linear map
+    applied to the unit speeds (forward-over-reverse), and the velocity coupling and time terms
+    are ONE more application along (1, q̇, 0). The mixed Hessian ∂²L/∂q̇∂q is never formed.
+
+    **Arguments:**
+
+    - `kinetic`: T(q, qd, p) → scalar.
+    - `potential`: V(q, p) → scalar, or None.
+    - `forces`: generalized non-conservative forces Q(q, qd, p) → (n,), defined by the virtual
+      work δW = Σ Q_j δq_j (inputs, friction), or None.
+    - `dissipation`: Rayleigh dissipation function D(q, qd, p) → scalar, or None; it adds the
+      force −∂D/∂q̇.
+    - `time_dependent`: if True every callback takes `t` first: T(t, q, qd, p), V(t, q, p),
+      Q(t, q, qd, p), D(t, q, qd, p) (rheonomic constraints, a driven support, a forcing that
+      varies in time).
+
+    The speeds of this formulation are u = q̇. Every method takes ``(t, q, qd, p=None)``, and
+    leading axes broadcast, so methods apply to whole trajectories.
+
+    **Example:**
+
+        def T(q, qd, p):
+            return 0.5 * p["m"] * p["l"] ** 2 * qd[0] ** 2
+        def V(q, p):
+            return -p["m"] * 9.81 * p["l"] * jnp.cos(q[0])
+        pendulum = jaxdyn.Lagrangian(T, V)
+        qdd = pendulum.accelerations(0.0, jnp.array([0.3]), jnp.array([0.0]), p)
+
+    Reference: J. L. Lagrange, Mécanique analytique (1788); reference.md §1.
+    """
+
+    kinetic: Callable
+    potential: Callable | None = None
+    forces: Callable | None = None
+    dissipation: Callable | None = None
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def _kinetic(self, t, q, qd, p):
+        value = call(self.kinetic, "kinetic energy T", self.time_dependent, VELOCITY_ARGS,
+                     t, q, qd, p)
+        return scalar(value, "kinetic energy T")
+
+    def _potential(self, t, q, p):
+        if self.potential is None:
+            return jnp.zeros((), q.dtype)
+        value = call(self.potential, "potential energy V", self.time_dependent,
+                     CONFIGURATION_ARGS, t, q, p)
+        return scalar(value, "potential energy V")
+
+    def _lagrangian(self, t, q, qd, p):
+        return self._kinetic(t, q, qd, p) - self._potential(t, q, p)
+
+    def _nonconservative(self, t, q, qd, p):
+        """Q − ∂D/∂q̇."""
+        total = jnp.zeros_like(qd)
+        if self.forces is not None:
+            value = call(self.forces, "generalized forces Q", self.time_dependent,
+                         VELOCITY_ARGS, t, q, qd, p)
+            total = total + vector(value, "generalized forces Q", qd.shape)
+        if self.dissipation is not None:
+            def dissipation(qd):
+                value = call(self.dissipation, "dissipation function D", self.time_dependent,
+                             VELOCITY_ARGS, t, q, qd, p)
+                return scalar(value, "dissipation function D")
+            total = total - jax.grad(dissipation)(qd)
+        return total
+
+    def _check(self, t, q, qd):
+        q = check_vector(q, "q")
+        qd = check_vector(qd, "qd", q.shape[0])
+        return jnp.asarray(t, q.dtype), q, qd
+
+    def _linearised_momentum(self, t, q, qd, p):
+        """((∂L/∂q̇, ∂L/∂q), their linearisation in (t, q, q̇))."""
+        def gradients(t, q, qd):
+            dL_dq, dL_dqd = jax.grad(self._lagrangian, argnums=(1, 2))(t, q, qd, p)
+            return dL_dqd, dL_dq
+
+        return jax.linearize(gradients, t, q, qd)
+
+    def coordinate_rates(self, t, q, u, p=None):
+        """q̇ = u: the speeds of Lagrange's equations are the coordinate rates."""
+        return u
+
+    def mass_matrix_and_forcing(self, t, q, qd, p=None):
+        t, q, qd = self._check(t, q, qd)
+        (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)
+        n = q.shape[0]
+        # Tangents: row 0 is d/dt along the motion at q̈ = 0, rows 1..n are the unit speeds.
+        time_rate = jnp.ones_like(t) if self.time_dependent else jnp.zeros_like(t)
+        t_dot = jnp.concatenate([time_rate[None], jnp.zeros(n, t.dtype)])
+        q_dot = jnp.concatenate([qd[None], jnp.zeros((n, n), q.dtype)])
+        qd_dot = jnp.concatenate([jnp.zeros((1, n), qd.dtype), jnp.eye(n, dtype=qd.dtype)])
+        momentum_rates, _ = jax.vmap(linear)(t_dot, q_dot, qd_dot)
+        coupling, mass_matrix = momentum_rates[0], momentum_rates[1:]
+        forcing = self._nonconservative(t, q, qd, p) + dL_dq - coupling
+        return mass_matrix, forcing
+
+    @over_states("(),(n),(n),(n)->(n)")
+    def residual(self, t, q, qd, qdd, p=None):
+        """The Euler–Lagrange residual d/dt ∂L/∂q̇ − ∂L/∂q − Q + ∂D/∂q̇ of a given motion.
+
+        Zero (to measurement accuracy) when (q, q̇, q̈) satisfies the equations of motion. The
+        total derivative d/dt ∂L/∂q̇ is one JVP along (1, q̇, q̈); no solve is involved, so
+        this also checks measured motion where M is ill-conditioned.
+        """
+        t, q, qd = self._check(t, q, qd)
+        qdd = check_vector(qdd, "qdd", q.shape[0])
+        (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)
+        time_rate = jnp.ones_like(t) if self.time_dependent else jnp.zeros_like(t)
+        momentum_rate, _ = linear(time_rate, qd, qdd)
+        return momentum_rate - dL_dq - self._nonconservative(t, q, qd, p)
+
+    @over_states("(),(n),(n)->()")
+    def kinetic_energy(self, t, q, qd, p=None):
+        """T(t, q, q̇)."""
+        t, q, qd = self._check(t, q, qd)
+        return self._kinetic(t, q, qd, p)
+
+    @over_states("(),(n),(n)->()")
+    def potential_energy(self, t, q, qd, p=None):
+        """V(t, q) (q̇ is accepted for a uniform signature and ignored)."""
+        t, q, qd = self._check(t, q, qd)
+        return self._potential(t, q, p)
+
+    @over_states("(),(n),(n)->()")
+    def lagrangian(self, t, q, qd, p=None):
+        """L = T − V."""
+        t, q, qd = self._check(t, q, qd)
+        return self._lagrangian(t, q, qd, p)
+
+    @over_states("(),(n),(n)->()")
+    def energy(self, t, q, qd, p=None):
+        """Mechanical energy E = T + V.
+
+        Conserved when the system is conservative (no Q, no D) and scleronomic. With dissipation
+        D homogeneous of degree 2 in q̇, dE/dt = −2D + Q·q̇. For a time-dependent (rheonomic)
+        system E is evaluated with the energies at time t and is in general not conserved: the
+        power of the driving appears in it; see `jacobi_integral`.
+        """
+        t, q, qd = self._check(t, q, qd)
+        return self._kinetic(t, q, qd, p) + self._potential(t, q, p)
+
+    @over_states("(),(n),(n)->()")
+    def jacobi_integral(self, t, q, qd, p=None):
+        """Jacobi's integral h = q̇·∂L/∂q̇ − L (the Hamiltonian in terms of q̇).
+
+        Equal to T + V when T is quadratic in q̇. Conserved whenever L has no explicit t and
+        Q = 0, D = 0, also for rheonomic coordinates such as a uniformly rotating frame, where
+        T + V is not conserved.
+        """
+        t, q, qd = self._check(t, q, qd)
+        lagrangian, momentum = jax.value_and_grad(self._lagrangian, argnums=2)(t, q, qd, p)
+        return jnp.dot(qd, momentum) - lagrangian
+
+    @over_states("(),(n),(n)->(n)")
+    def momentum(self, t, q, qd, p=None):
+        """Generalized momenta ∂L/∂q̇ (conserved along a cyclic coordinate)."""
+        t, q, qd = self._check(t, q, qd)
+        return jax.grad(self._lagrangian, argnums=2)(t, q, qd, p)
