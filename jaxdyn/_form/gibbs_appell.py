@@ -1,0 +1,72 @@
+"""The Gibbs–Appell equations: the mass matrix is the Hessian of the Gibbs function."""
+
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._convention import call, scalar, vector
+from .._dynamics import AbstractDynamics
+from .._speeds import kinematic_matrix
+from .._state import check_vector
+
+GIBBS_ARGS = ("q", "u", "ud", "p")
+ACTIVE_ARGS = ("q", "u", "p")
+
+
+class GibbsAppell(AbstractDynamics):
+    r"""Equations of motion from a Gibbs function ("energy of accelerations").
+
+        ∂S/∂u̇_r = Π_r,   r = 1 … m,
+
+    with S(q, u, u̇) = ½ Σ m a·a (+ ½ α·Iα + α·(ω × Iω) for rigid bodies) quadratic in u̇, so
+
+        M = ∂²S/∂u̇² (its Hessian in the accelerations),   f = Π − ∂S/∂u̇ |_{u̇=0}.
+
+    M is formed forward-over-reverse at u̇ = 0, where the gradient is also the bias.
+
+    **Arguments:**
+
+    - `gibbs`: S(q, u, ud, p) → scalar.
+    - `active_forces`: Π(q, u, p) → (m,), the generalized active forces along the speeds, or
+      None for a free system.
+    - `kinematic_map`: K(q, p) → (n, m) with q̇ = K u, or None for u = q̇. With m < n the
+      speeds are independent quasi-velocities of a nonholonomic system.
+    - `time_dependent`: if True every callback takes t first.
+
+    Build one from bodies with `MultibodySystem.gibbs_appell(kinematic_map)`.
+
+    Reference: P. Appell (1899); N. V. Khang, Vietnam J. Mech. 28(4) (2006); reference.md §3.
+    """
+
+    gibbs: Callable
+    active_forces: Callable | None = None
+    kinematic_map: Callable | None = None
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def coordinate_rates(self, t, q, u, p=None):
+        """q̇ = K(t, q, p) u."""
+        return kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p) @ u
+
+    def mass_matrix_and_forcing(self, t, q, u, p=None):
+        q = check_vector(q, "q")
+        u = check_vector(u, "u")
+        t = jnp.asarray(t, q.dtype)
+        kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p)  # shape check
+
+        def gibbs(ud):
+            value = call(self.gibbs, "Gibbs function S", self.time_dependent, GIBBS_ARGS,
+                         t, q, u, ud, p)
+            return scalar(value, "Gibbs function S")
+
+        gradient = jax.grad(gibbs)
+        zero = jnp.zeros_like(u)
+        bias = gradient(zero)
+        mass_matrix = jax.jacfwd(gradient)(zero)
+        if self.active_forces is None:
+            active = jnp.zeros_like(u)
+        else:
+            active = vector(call(self.active_forces, "active forces Π", self.time_dependent,
+                                 ACTIVE_ARGS, t, q, u, p), "active forces Π", u.shape)
+        return mass_matrix, active - bias
