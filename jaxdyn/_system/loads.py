@@ -10,34 +10,41 @@ from .._convention import CONFIGURATION_ARGS, VELOCITY_ARGS, call
 from .bodies import RigidBody, along_motion
 
 
-def _load_vector(value, name):
-    value = jnp.asarray(value)
+def _load(fn, name, time_dependent, t, q, qd, p):
+    value = jnp.asarray(call(fn, name, time_dependent, VELOCITY_ARGS, t, q, qd, p))
     if value.shape != (3,):
         raise ValueError(f"{name} must return a 3-vector in world axes, got shape {value.shape}.")
     return value
 
 
+def _dot_partials(velocity, qd, load):
+    """Q_j = load · ∂velocity/∂q̇_j for all j: one vector–Jacobian product."""
+    return jax.vjp(velocity, qd)[1](load)[0]
+
+
 class PointForce(eqx.Module):
     """A force F(q, qd, p) (world axes) applied at the point r(q, p).
 
-    Its generalized force is Q_j = F·∂ṙ/∂q̇_j, the force dotted with the point's partial
-    velocities: a vector–Jacobian product of the point's velocity in q̇.
+    Its generalized force is Q_j = F·∂ṙ/∂q̇_j: the force dotted with the point's partial
+    velocities.
     """
 
     point: Callable
     force: Callable
 
     def generalized_force(self, time_dependent, t, q, t_dot, qd, p):
-        force = _load_vector(call(self.force, "PointForce force", time_dependent,
-                                  VELOCITY_ARGS, t, q, qd, p), "PointForce force")
+        def position(t, q):
+            r = jnp.asarray(call(self.point, "PointForce point", time_dependent,
+                                 CONFIGURATION_ARGS, t, q, p))
+            if r.shape != (3,):
+                raise ValueError(f"PointForce point must return a 3-vector, got {r.shape}.")
+            return r
 
         def velocity(qd):
-            position = lambda t, q: _load_vector(
-                call(self.point, "PointForce point", time_dependent, CONFIGURATION_ARGS,
-                     t, q, p), "PointForce point")
             return along_motion(position, t, q, t_dot, qd)[1]
 
-        return jax.vjp(velocity, qd)[1](force)[0]
+        force = _load(self.force, "PointForce force", time_dependent, t, q, qd, p)
+        return _dot_partials(velocity, qd, force)
 
 
 class BodyTorque(eqx.Module):
@@ -50,10 +57,8 @@ class BodyTorque(eqx.Module):
     torque: Callable
 
     def generalized_force(self, time_dependent, t, q, t_dot, qd, p):
-        torque = _load_vector(call(self.torque, "BodyTorque torque", time_dependent,
-                                   VELOCITY_ARGS, t, q, qd, p), "BodyTorque torque")
-
         def angular_velocity(qd):
             return self.body.world_angular_velocity(time_dependent, t, q, t_dot, qd, p)
 
-        return jax.vjp(angular_velocity, qd)[1](torque)[0]
+        torque = _load(self.torque, "BodyTorque torque", time_dependent, t, q, qd, p)
+        return _dot_partials(angular_velocity, qd, torque)
