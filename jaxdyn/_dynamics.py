@@ -4,7 +4,7 @@ import abc
 
 import equinox as eqx
 
-from ._errors import reports_state
+from ._errors import check_static_indexing, reports_state
 from ._linalg import solve_mass_matrix
 from ._state import over_states
 
@@ -31,19 +31,32 @@ class AbstractDynamics(eqx.Module):
     def mass_matrix_and_forcing(self, t, q, u, p=None):
         """(M, f) of M u̇ = f, formed together since they share their derivative passes."""
 
+    def checked_equations(self, t, q, u, p=None):
+        """`mass_matrix_and_forcing`, after a trace-time check that no callback indexes past
+        the end of q or u (which JAX would silently clamp)."""
+        check_static_indexing(self.mass_matrix_and_forcing, t, q, u, p)
+        return self.mass_matrix_and_forcing(t, q, u, p)
+
     @over_states("(),(n),(m)->(m,m)")
     def mass_matrix(self, t, q, u, p=None):
         """The mass matrix M of M u̇ = f (symmetric positive definite)."""
-        return self.mass_matrix_and_forcing(t, q, u, p)[0]
+        return self.checked_equations(t, q, u, p)[0]
 
     @over_states("(),(n),(m)->(m)")
     def forcing(self, t, q, u, p=None):
         """The forcing f of M u̇ = f: every term of the equations except M u̇."""
-        return self.mass_matrix_and_forcing(t, q, u, p)[1]
+        return self.checked_equations(t, q, u, p)[1]
 
     @reports_state
     @over_states("(),(n),(m)->(m)")
     def accelerations(self, t, q, u, p=None):
         """u̇ = M⁻¹ f by Cholesky; an error names the state if M is singular there."""
-        mass_matrix, forcing = self.mass_matrix_and_forcing(t, q, u, p)
-        return solve_mass_matrix(mass_matrix, forcing, t, q, u)
+        check_static_indexing(self.mass_matrix_and_forcing, t, q, u, p)
+        return solve_equations(self, t, q, u, p)
+
+
+def solve_equations(dynamics: AbstractDynamics, t, q, u, p):
+    """u̇ = M⁻¹ f for one state, without the trace-time checks (for use inside solvers, where
+    `simulate` has run them once)."""
+    mass_matrix, forcing = dynamics.mass_matrix_and_forcing(t, q, u, p)
+    return solve_mass_matrix(mass_matrix, forcing, t, q, u)

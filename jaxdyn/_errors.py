@@ -9,6 +9,8 @@ the error crosses a jaxdyn entry point such as `simulate`.
 
 import functools
 
+from jax.experimental import checkify
+
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
@@ -86,3 +88,26 @@ def _block(tree):
         return x
 
     return jax.tree_util.tree_map(block, tree)
+
+
+def check_static_indexing(fn, *args):
+    """Raise if `fn(*args)` indexes an array out of bounds with a static index.
+
+    JAX clamps out-of-range indices, so a callback written for more coordinates than it is
+    given (``qd[1]`` with one coordinate) would silently read the wrong entry. Tracing the
+    function under `checkify` with compile-time evaluation evaluates the bounds checks of
+    static indices at trace time; checks that depend on traced values stay unevaluated (and
+    are dropped, unused, by XLA).
+    """
+    with jax.ensure_compile_time_eval():
+        error, _ = checkify.checkify(fn, errors=checkify.index_checks)(*args)
+        try:
+            message = error.get()
+        except Exception:  # the check depends on traced values: nothing to say now
+            return
+    if message is not None:
+        raise ValueError(
+            f"A callback indexes past the end of its input: {message.strip()} Check that the "
+            "energies, forces and kinematics are written for the number of coordinates and "
+            "speeds you pass (q of shape (n,), speeds of shape (m,))."
+        )

@@ -5,8 +5,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._dynamics import AbstractDynamics
-from ._errors import nonfinite_tree_check, reports_state
+from ._dynamics import AbstractDynamics, solve_equations
+from ._errors import check_static_indexing, nonfinite_tree_check, reports_state
 from ._solution import RESULTS, Solution
 from ._state import check_vector
 
@@ -20,7 +20,7 @@ MAX_STEPS = (
 def _vector_field(t, y, args):
     dynamics, p = args
     q, u = y
-    return dynamics.coordinate_rates(t, q, u, p), dynamics.accelerations(t, q, u, p)
+    return dynamics.coordinate_rates(t, q, u, p), solve_equations(dynamics, t, q, u, p)
 
 
 @reports_state
@@ -152,6 +152,7 @@ def _simulate(dynamics, q0, u0, p, *, t0, t1, ts, dense, solver, rtol, atol, dt0
 def _check_shapes(dynamics, t0, q0, u0, p):
     """Trace the dynamics once on the initial state, so that shape errors in user callbacks
     are reported before the solve with the shapes involved."""
+    check_static_indexing(dynamics.mass_matrix_and_forcing, t0, q0, u0, p)
     rates, accelerations = eqx.filter_eval_shape(_vector_field, t0, (q0, u0), (dynamics, p))
     if rates.shape != q0.shape:
         raise ValueError(

@@ -1,0 +1,340 @@
+"""`jaxdyn.simulate` against exact solutions, an independent integrator (SciPy) and
+conservation laws."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.optimize
+import scipy.special
+
+import jaxdyn
+
+from helpers import (
+    BEAD_ON_HOOP,
+    BEAD_PARAMS,
+    DRIVEN_SUPPORT,
+    DRIVEN_SUPPORT_PARAMS,
+    ELASTIC_PENDULUM,
+    HARMONIC_OSCILLATOR,
+    PENDULUM,
+    assert_close,
+    driven_support_acceleration,
+)
+
+# ---------------------------------------------------------------------------------------------
+# Harmonic oscillator: q = q0 cos ωt + (u0/ω) sin ωt
+# ---------------------------------------------------------------------------------------------
+
+HO = HARMONIC_OSCILLATOR.dynamics
+HO_PARAMS = HARMONIC_OSCILLATOR.params
+HO_T1 = 10.0
+HO_TS = np.linspace(0.0, HO_T1, 21)
+HO_Q0 = np.array([1.0])
+HO_U0 = np.array([0.5])
+
+
+def _ho_exact(t, q0, u0, p):
+    w = np.sqrt(p["k"] / p["m"])
+    t = np.asarray(t)[:, None]
+    q = q0 * np.cos(w * t) + u0 / w * np.sin(w * t)
+    u = -q0 * w * np.sin(w * t) + u0 * np.cos(w * t)
+    return q, u
+
+
+def test_harmonic_oscillator_matches_exact_solution():
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=HO_T1, ts=HO_TS)
+    q, u = _ho_exact(HO_TS, HO_Q0, HO_U0, HO_PARAMS)
+    assert sol.q.shape == (21, 1) and sol.u.shape == (21, 1) and sol.qd.shape == (21, 1)
+    assert_close(sol.ts, HO_TS, rtol=0, atol=0)
+    assert_close(sol.q, q, rtol=0, atol=1e-7)
+    assert_close(sol.u, u, rtol=0, atol=1e-7)
+    # For Lagrange's equations the speeds are the coordinate rates.
+    assert_close(sol.qd, sol.u, rtol=0, atol=0)
+    assert sol.result == jaxdyn.RESULTS.successful
+
+
+def test_saving_only_t1_by_default():
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=HO_T1)
+    q, u = _ho_exact([HO_T1], HO_Q0, HO_U0, HO_PARAMS)
+    assert sol.ts.shape == (1,)
+    assert_close(sol.ts, [HO_T1], rtol=0, atol=0)
+    assert_close(sol.q, q, rtol=0, atol=1e-7)
+    assert_close(sol.u, u, rtol=0, atol=1e-7)
+
+
+def test_backwards_in_time():
+    ts = np.linspace(0.0, -HO_T1, 11)
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=-HO_T1, ts=ts)
+    q, u = _ho_exact(ts, HO_Q0, HO_U0, HO_PARAMS)
+    assert_close(sol.q, q, rtol=0, atol=1e-7)
+    assert_close(sol.u, u, rtol=0, atol=1e-7)
+
+
+def test_dense_evaluate_matches_exact_solution():
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=HO_T1, ts=HO_TS, dense=True)
+    ts = np.random.default_rng(0).uniform(0.0, HO_T1, 9)
+    evaluate = jax.jit(jax.vmap(lambda sol, t: sol.evaluate(t), in_axes=(None, 0)))
+    q, u = evaluate(sol, ts)
+    expected_q, expected_u = _ho_exact(ts, HO_Q0, HO_U0, HO_PARAMS)
+    # The interpolant is less accurate than the step endpoints, but still close.
+    assert_close(q, expected_q, rtol=0, atol=1e-6)
+    assert_close(u, expected_u, rtol=0, atol=1e-6)
+
+
+def test_vmap_over_parameters():
+    ks = np.array([1.0, 2.5, 4.3, 9.0])
+
+    @jax.jit
+    def final_states(ks):
+        def one(k):
+            sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, {"m": HO_PARAMS["m"], "k": k}, t1=HO_T1,
+                                  ts=HO_TS)
+            return sol.q, sol.u
+        return jax.vmap(one)(ks)
+
+    q, u = final_states(ks)
+    assert q.shape == (4, 21, 1)
+    for i, k in enumerate(ks):
+        expected_q, expected_u = _ho_exact(HO_TS, HO_Q0, HO_U0, {"m": HO_PARAMS["m"], "k": k})
+        assert_close(q[i], expected_q, rtol=0, atol=1e-7)
+        assert_close(u[i], expected_u, rtol=0, atol=1e-7)
+
+
+def test_vmap_over_initial_states():
+    q0s = np.array([[1.0], [-0.4], [2.0]])
+    u0s = np.array([[0.5], [1.5], [0.0]])
+    simulate = jax.jit(jax.vmap(
+        lambda q0, u0: jaxdyn.simulate(HO, q0, u0, HO_PARAMS, t1=HO_T1, ts=HO_TS).q
+    ))
+    q = simulate(q0s, u0s)
+    for i in range(3):
+        expected_q, _ = _ho_exact(HO_TS, q0s[i], u0s[i], HO_PARAMS)
+        assert_close(q[i], expected_q, rtol=0, atol=1e-7)
+
+
+def test_solver_statistics_fixed_step():
+    """With a constant step the number of steps is known: (t1 − t0)/dt0, none rejected."""
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=2.0, dt0=0.02,
+                          stepsize_controller=diffrax.ConstantStepSize())
+    assert int(sol.num_steps) == 100
+    assert int(sol.num_accepted_steps) == 100
+    assert int(sol.num_rejected_steps) == 0
+    q, _ = _ho_exact([2.0], HO_Q0, HO_U0, HO_PARAMS)
+    assert_close(sol.q, q, rtol=0, atol=1e-8)  # Tsit5 at h = 0.02: error ~ h⁵
+
+
+def test_solver_statistics_adaptive():
+    sol = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=HO_T1, ts=HO_TS)
+    num_steps = int(sol.num_steps)
+    assert num_steps > 0
+    assert int(sol.num_accepted_steps) + int(sol.num_rejected_steps) == num_steps
+    assert int(sol.num_accepted_steps) > 0
+    # Tighter tolerances need more steps.
+    tight = jaxdyn.simulate(HO, HO_Q0, HO_U0, HO_PARAMS, t1=HO_T1, ts=HO_TS, rtol=1e-11,
+                            atol=1e-11)
+    assert int(tight.num_accepted_steps) > int(sol.num_accepted_steps)
+
+
+def test_float32_simulation():
+    sol = jaxdyn.simulate(HO, HO_Q0.astype(np.float32), HO_U0.astype(np.float32),
+                          {"m": np.float32(HO_PARAMS["m"]), "k": np.float32(HO_PARAMS["k"])},
+                          t1=HO_T1, ts=HO_TS.astype(np.float32), rtol=1e-6, atol=1e-6)
+    for leaf in (sol.ts, sol.q, sol.u, sol.qd):
+        assert leaf.dtype == jnp.float32
+    q, u = _ho_exact(HO_TS, HO_Q0, HO_U0, HO_PARAMS)
+    assert_close(sol.q, q.astype(np.float32), rtol=0, atol=1e-4)
+    assert_close(sol.u, u.astype(np.float32), rtol=0, atol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# Pendulum: energy and period
+# ---------------------------------------------------------------------------------------------
+
+
+def test_pendulum_conserves_energy():
+    p = PENDULUM.params
+    ts = np.linspace(0.0, 10.0, 101)
+    sol = jaxdyn.simulate(PENDULUM.dynamics, np.array([2.5]), np.array([0.0]), p, t1=10.0,
+                          ts=ts)
+    energy = np.array([PENDULUM.energy(q, u, p) for q, u in zip(np.asarray(sol.q),
+                                                                np.asarray(sol.u))])
+    scale = p["m"] * p["g"] * p["l"]
+    assert np.max(np.abs(energy - energy[0])) < 1e-7 * scale
+    # The motion is not trivial: it swings through large angles.
+    assert np.max(np.abs(np.asarray(sol.q))) > 2.0 and np.min(np.asarray(sol.q)) < -2.0
+
+
+def _zero_crossings(sol, t0, t1, num=400):
+    """Times where q[0](t) changes sign, located by root finding on the dense interpolant."""
+    theta = jax.jit(lambda sol, t: sol.evaluate(t)[0][0])
+    grid = np.linspace(t0, t1, num)
+    values = np.asarray(jax.jit(jax.vmap(lambda sol, t: sol.evaluate(t)[0][0],
+                                         in_axes=(None, 0)))(sol, grid))
+    crossings = []
+    for i in np.flatnonzero(np.sign(values[:-1]) != np.sign(values[1:])):
+        crossings.append(scipy.optimize.brentq(lambda t: float(theta(sol, t)), grid[i],
+                                               grid[i + 1], xtol=1e-14, rtol=1e-15))
+    return np.array(crossings)
+
+
+def test_pendulum_period():
+    """Small swings: 2π √(l/g). Any amplitude θ0: 4 √(l/g) K(sin²(θ0/2)) (complete elliptic
+    integral of the first kind, parameter m = k²). Tight solver tolerances: the absolute
+    tolerance must be small against the 1e-2 amplitude of the small swing."""
+    p = PENDULUM.params
+    root = np.sqrt(p["l"] / p["g"])
+    t1 = 8.0
+    for theta0 in (1e-2, 2.0):
+        sol = jaxdyn.simulate(PENDULUM.dynamics, np.array([theta0]), np.array([0.0]), p, t1=t1,
+                              dense=True, rtol=1e-12, atol=1e-12)
+        crossings = _zero_crossings(sol, 0.0, t1)
+        assert len(crossings) >= 4
+        # Crossings alternate direction every half period.
+        half_periods = np.diff(crossings)
+        period = 2 * np.mean(half_periods)
+        exact = 4 * root * scipy.special.ellipk(np.sin(theta0 / 2) ** 2)
+        assert_close(2 * half_periods, np.full_like(half_periods, exact), rtol=1e-8)
+        assert_close(crossings[0], exact / 4, rtol=1e-8)
+        if theta0 < 0.1:
+            # 2π√(l/g) is the period to O(θ0²): relative correction θ0²/16 ≈ 6e-6.
+            assert_close(period, 2 * np.pi * root, rtol=1e-5)
+            assert abs(period / (2 * np.pi * root) - 1 - theta0**2 / 16) < 1e-8
+
+
+# ---------------------------------------------------------------------------------------------
+# Dissipation and forcing
+# ---------------------------------------------------------------------------------------------
+
+
+def test_damped_oscillator_rayleigh_dissipation():
+    """m q̈ + c q̇ + k q = 0 from D = ½ c q̇², underdamped:
+    q = e^{−ζω₀t} (q0 cos ω_d t + (u0 + ζω₀ q0)/ω_d sin ω_d t)."""
+    system = jaxdyn.Lagrangian(
+        lambda q, qd, p: 0.5 * p["m"] * qd[0] ** 2,
+        lambda q, p: 0.5 * p["k"] * q[0] ** 2,
+        dissipation=lambda q, qd, p: 0.5 * p["c"] * qd[0] ** 2,
+    )
+    p = {"m": 1.5, "k": 20.0, "c": 1.2}
+    q0, u0 = 0.8, -0.3
+    ts = np.linspace(0.0, 6.0, 31)
+    sol = jaxdyn.simulate(system, np.array([q0]), np.array([u0]), p, t1=6.0, ts=ts)
+    w0 = np.sqrt(p["k"] / p["m"])
+    zeta = p["c"] / (2 * np.sqrt(p["k"] * p["m"]))
+    assert zeta < 1
+    wd = w0 * np.sqrt(1 - zeta**2)
+    b = (u0 + zeta * w0 * q0) / wd
+    decay = np.exp(-zeta * w0 * ts)
+    q = decay * (q0 * np.cos(wd * ts) + b * np.sin(wd * ts))
+    u = -zeta * w0 * q + decay * wd * (-q0 * np.sin(wd * ts) + b * np.cos(wd * ts))
+    assert_close(sol.q[:, 0], q, rtol=0, atol=1e-7)
+    assert_close(sol.u[:, 0], u, rtol=0, atol=1e-6)
+    # The energy dissipated matches the power of the damping force: E decreases.
+    energy = np.asarray(system.energy(sol.ts, sol.q, sol.qd, p))
+    assert np.all(np.diff(energy) < 0)
+
+
+DRIVEN_OSCILLATOR = jaxdyn.Lagrangian(
+    lambda t, q, qd, p: 0.5 * p["m"] * qd[0] ** 2,
+    lambda t, q, p: 0.5 * p["k"] * q[0] ** 2,
+    forces=lambda t, q, qd, p: jnp.stack([p["F"] * jnp.cos(p["w"] * t)]),
+    time_dependent=True,
+)
+
+
+@pytest.mark.parametrize("t0", [0.0, 2.0])
+def test_driven_oscillator_time_dependent_force(t0):
+    """m q̈ + k q = F cos ωt (ω ≠ ω₀) from (t0, q0, u0):
+    q = a cos ω₀(t − t0) + b sin ω₀(t − t0) + A cos ωt,  A = F / (m (ω₀² − ω²)),
+    a = q0 − A cos ωt0,  b = (u0 + A ω sin ωt0) / ω₀. A start at t0 ≠ 0 checks that the
+    callbacks see the absolute time."""
+    p = {"m": 0.8, "k": 5.0, "F": 1.3, "w": 1.1}
+    q0, u0 = 0.2, 0.7
+    t1 = t0 + 8.0
+    ts = np.linspace(t0, t1, 33)
+    sol = jaxdyn.simulate(DRIVEN_OSCILLATOR, np.array([q0]), np.array([u0]), p, t0=t0, t1=t1,
+                          ts=ts)
+    w0, w = np.sqrt(p["k"] / p["m"]), p["w"]
+    A = p["F"] / (p["m"] * (w0**2 - w**2))
+    a = q0 - A * np.cos(w * t0)
+    b = (u0 + A * w * np.sin(w * t0)) / w0
+    s = ts - t0
+    q = a * np.cos(w0 * s) + b * np.sin(w0 * s) + A * np.cos(w * ts)
+    u = -a * w0 * np.sin(w0 * s) + b * w0 * np.cos(w0 * s) - A * w * np.sin(w * ts)
+    assert_close(sol.ts, ts, rtol=0, atol=0)
+    assert_close(sol.q[:, 0], q, rtol=0, atol=1e-7)
+    assert_close(sol.u[:, 0], u, rtol=0, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rheonomic systems
+# ---------------------------------------------------------------------------------------------
+
+
+def test_driven_support_pendulum_matches_scipy():
+    """The pendulum on a vertically oscillating support against SciPy's DOP853 on the
+    hand-derived θ̈ = −(g + ÿ_s)/l sin θ."""
+    p = DRIVEN_SUPPORT_PARAMS
+    t1 = 5.0
+    ts = np.linspace(0.0, t1, 26)
+    theta0, omega0 = 1.0, -0.5
+
+    def rhs(t, y):
+        return [y[1], driven_support_acceleration(t, y[0], p)]
+
+    reference = scipy.integrate.solve_ivp(rhs, (0.0, t1), [theta0, omega0], method="DOP853",
+                                          t_eval=ts, rtol=1e-11, atol=1e-12)
+    assert reference.success
+    sol = jaxdyn.simulate(DRIVEN_SUPPORT, np.array([theta0]), np.array([omega0]), p, t1=t1,
+                          ts=ts, rtol=1e-10, atol=1e-10)
+    assert_close(sol.q[:, 0], reference.y[0], rtol=0, atol=1e-7)
+    assert_close(sol.u[:, 0], reference.y[1], rtol=0, atol=1e-7)
+
+
+def test_bead_on_rotating_hoop_conserves_jacobi_integral():
+    """Uniform rotation: h = ½ m R² (θ̇² − Ω² sin²θ) − m g R cos θ is conserved while T + V is
+    not (the motor driving the hoop does work)."""
+    p = BEAD_PARAMS
+    m, R, g, W = p["m"], p["R"], p["g"], p["Omega"]
+    ts = np.linspace(0.0, 5.0, 51)
+    sol = jaxdyn.simulate(BEAD_ON_HOOP, np.array([0.3]), np.array([1.0]), p, t1=5.0, ts=ts)
+    theta, theta_d = np.asarray(sol.q[:, 0]), np.asarray(sol.u[:, 0])
+    jacobi = 0.5 * m * R**2 * (theta_d**2 - W**2 * np.sin(theta) ** 2) - m * g * R * np.cos(
+        theta
+    )
+    energy = 0.5 * m * R**2 * (theta_d**2 + W**2 * np.sin(theta) ** 2) - m * g * R * np.cos(
+        theta
+    )
+    scale = m * R**2 * W**2
+    assert np.max(np.abs(jacobi - jacobi[0])) < 1e-7 * scale
+    assert np.max(np.abs(energy - energy[0])) > 1e-2 * scale
+
+
+# ---------------------------------------------------------------------------------------------
+# Elastic pendulum (25.2)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_elastic_pendulum_conserves_energy():
+    p = ELASTIC_PENDULUM.params
+    ts = np.linspace(0.0, 6.0, 61)
+    q0, u0 = np.array([1.5, 1.0]), np.array([0.3, -0.8])
+    sol = jaxdyn.simulate(ELASTIC_PENDULUM.dynamics, q0, u0, p, t1=6.0, ts=ts)
+    energy = np.array([ELASTIC_PENDULUM.energy(q, u, p) for q, u in zip(np.asarray(sol.q),
+                                                                         np.asarray(sol.u))])
+    scale = p["m"] * p["g"] * p["l0"]
+    assert np.max(np.abs(energy - energy[0])) < 1e-7 * scale
+    # Both degrees of freedom move appreciably (the spring and the swing exchange energy).
+    assert np.ptp(np.asarray(sol.q[:, 0])) > 0.1 and np.ptp(np.asarray(sol.q[:, 1])) > 0.5
+
+
+def test_solution_is_a_pytree_that_can_be_returned_from_jit():
+    """`simulate` composes with an outer filter_jit; the result equals the exact solution."""
+    run = eqx.filter_jit(lambda q0: jaxdyn.simulate(HO, q0, HO_U0, HO_PARAMS, t1=HO_T1,
+                                                    ts=HO_TS))
+    sol = run(np.array([-0.7]))
+    q, _ = _ho_exact(HO_TS, np.array([-0.7]), HO_U0, HO_PARAMS)
+    assert_close(sol.q, q, rtol=0, atol=1e-7)
