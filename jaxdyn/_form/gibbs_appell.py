@@ -60,10 +60,10 @@ class GibbsAppell(AbstractDynamics):
                          t, q, u, ud, p)
             return scalar(value, "Gibbs function S")
 
-        gradient = jax.grad(gibbs)
-        zero = jnp.zeros_like(u)
-        bias = gradient(zero)
-        mass_matrix = jax.jacfwd(gradient)(zero)
+        # One linearisation of ∇_u̇ S at u̇ = 0 gives the bias (its value) and M (its tangent
+        # map, applied to the unit accelerations): forward-over-reverse.
+        bias, hessian_times = jax.linearize(jax.grad(gibbs), jnp.zeros_like(u))
+        mass_matrix = jax.vmap(hessian_times)(jnp.eye(u.shape[0], dtype=u.dtype))
         if self.active_forces is None:
             active = jnp.zeros_like(u)
         else:
