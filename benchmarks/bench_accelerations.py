@@ -21,7 +21,7 @@ jax.config.update("jax_enable_x64", True)
 import jaxdyn  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import compile_time, run_time  # noqa: E402
+from _timing import timed  # noqa: E402
 
 P = dict(m1=1.0, m2=0.8, l1=1.0, l2=0.7, g=9.81)
 
@@ -71,10 +71,10 @@ def main():
         "accelerations, one state": (hand_written, system.accelerations, (t, q, qd, p)),
         "accelerations, vmap over 1024": (batched_theirs, batched_ours, (t, qs, qds, p)),
     }.items():
-        base, mine = run_time(jax.jit(a), *args), run_time(jax.jit(b), *args)
+        (base_compile, base), (mine_compile, mine) = timed(a, *args), timed(b, *args)
         print(f"{name:34s} {1e6 * base:10.2f} µs {1e6 * mine:8.2f} µs {mine / base:6.2f}")
-        base, mine = compile_time(a, *args), compile_time(b, *args)
-        print(f"{'  compile':34s} {base:10.3f} s  {mine:8.3f} s  {mine / base:6.2f}")
+        print(f"{'  compile':34s} {base_compile:10.3f} s  {mine_compile:8.3f} s  "
+              f"{mine_compile / base_compile:6.2f}")
 
     solver, tol, t1 = diffrax.Dopri8(), 1e-10, 10.0
 
@@ -90,16 +90,15 @@ def main():
         return jaxdyn.simulate(system, q, qd, p, t1=t1, solver=solver, rtol=tol, atol=tol,
                                max_steps=100_000).q[-1]
 
-    baseline_jit = jax.jit(baseline_solve)
-    difference = float(jnp.max(jnp.abs(baseline_jit(p) - jaxdyn_solve(p))))
-    base, mine = run_time(baseline_jit, p, number=5), run_time(jaxdyn_solve, p, number=5)
+    difference = float(jnp.max(jnp.abs(jax.jit(baseline_solve)(p) - jaxdyn_solve(p))))
+    (_, base), (_, mine) = timed(baseline_solve, p, number=5), timed(jaxdyn_solve, p, number=5)
     print(f"{'simulate 10 s (Dopri8, tol 1e-10)':34s} {1e3 * base:10.2f} ms {1e3 * mine:8.2f} ms "
           f"{mine / base:6.2f}   (final states differ by {difference:.1e})")
-    grad_base = jax.jit(jax.grad(lambda p: jnp.sum(baseline_solve(p) ** 2)))
+    grad_base = jax.grad(lambda p: jnp.sum(baseline_solve(p) ** 2))
     grad_mine = jax.grad(lambda p: jnp.sum(jaxdyn_solve(p) ** 2))
-    gb, gm = grad_base(p), grad_mine(p)
+    gb, gm = jax.jit(grad_base)(p), jax.jit(grad_mine)(p)
     gdiff = max(float(np.abs(gb[k] - gm[k])) for k in gb)
-    base, mine = run_time(grad_base, p, number=3), run_time(grad_mine, p, number=3)
+    (_, base), (_, mine) = timed(grad_base, p, number=3), timed(grad_mine, p, number=3)
     print(f"{'grad of simulate w.r.t. p':34s} {1e3 * base:10.2f} ms {1e3 * mine:8.2f} ms "
           f"{mine / base:6.2f}   (gradients differ by {gdiff:.1e})")
 

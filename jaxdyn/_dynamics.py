@@ -31,10 +31,14 @@ class AbstractDynamics(eqx.Module):
     def mass_matrix_and_forcing(self, t, q, u, p=None):
         """(M, f) of M u̇ = f, formed together since they share their derivative passes."""
 
+    @abc.abstractmethod
+    def user_functions(self, t, q, u, p=None):
+        """Every user callback evaluated once, without derivatives (for trace-time checks)."""
+
     def checked_equations(self, t, q, u, p=None):
         """`mass_matrix_and_forcing`, after a trace-time check that no callback indexes past
         the end of q or u (which JAX would silently clamp)."""
-        check_static_indexing(self.mass_matrix_and_forcing, t, q, u, p)
+        check_static_indexing(self.user_functions, t, q, u, p)
         return self.mass_matrix_and_forcing(t, q, u, p)
 
     @over_states("(),(n),(m)->(m,m)")
@@ -51,7 +55,7 @@ class AbstractDynamics(eqx.Module):
     @over_states("(),(n),(m)->(m)")
     def accelerations(self, t, q, u, p=None):
         """u̇ = M⁻¹ f by Cholesky; an error names the state if M is singular there."""
-        check_static_indexing(self.mass_matrix_and_forcing, t, q, u, p)
+        check_static_indexing(self.user_functions, t, q, u, p)
         return solve_equations(self, t, q, u, p)
 
 

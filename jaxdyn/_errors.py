@@ -94,16 +94,21 @@ def check_static_indexing(fn, *args):
     """Raise if `fn(*args)` indexes an array out of bounds with a static index.
 
     JAX clamps out-of-range indices, so a callback written for more coordinates than it is
-    given (``qd[1]`` with one coordinate) would silently read the wrong entry. Tracing the
-    function under `checkify` with compile-time evaluation evaluates the bounds checks of
-    static indices at trace time; checks that depend on traced values stay unevaluated (and
-    are dropped, unused, by XLA).
+    given (``qd[1]`` with one coordinate) would silently read the wrong entry. Tracing `fn`
+    under `checkify` with compile-time evaluation computes the bounds checks of static indices
+    at trace time (their operands are constants); checks that depend on traced values stay
+    symbolic and are skipped. `fn` should be cheap (the user callbacks alone, no derivatives):
+    what it stages is unused and dropped by XLA.
     """
+    leaves = jax.tree_util.tree_leaves((fn, args))
     with jax.ensure_compile_time_eval():
-        error, _ = checkify.checkify(fn, errors=checkify.index_checks)(*args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            error = _checked(fn, args)
+        else:  # an eager call: trace it (cached per system) so that the checks are formed
+            error = _checked_jit(fn, args)
         try:
             message = error.get()
-        except Exception:  # the check depends on traced values: nothing to say now
+        except jax.errors.ConcretizationTypeError:  # depends on traced values
             return
     if message is not None:
         raise ValueError(
@@ -111,3 +116,10 @@ def check_static_indexing(fn, *args):
             "energies, forces and kinematics are written for the number of coordinates and "
             "speeds you pass (q of shape (n,), speeds of shape (m,))."
         )
+
+
+def _checked(fn, args):
+    return checkify.checkify(fn, errors=checkify.index_checks)(*args)[0]
+
+
+_checked_jit = eqx.filter_jit(_checked)

@@ -152,7 +152,7 @@ def _simulate(dynamics, q0, u0, p, *, t0, t1, ts, dense, solver, rtol, atol, dt0
 def _check_shapes(dynamics, t0, q0, u0, p):
     """Trace the dynamics once on the initial state, so that shape errors in user callbacks
     are reported before the solve with the shapes involved."""
-    check_static_indexing(dynamics.mass_matrix_and_forcing, t0, q0, u0, p)
+    check_static_indexing(dynamics.user_functions, t0, q0, u0, p)
     rates, accelerations = eqx.filter_eval_shape(_vector_field, t0, (q0, u0), (dynamics, p))
     if rates.shape != q0.shape:
         raise ValueError(

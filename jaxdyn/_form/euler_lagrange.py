@@ -110,6 +110,11 @@ class Lagrangian(AbstractDynamics):
         """q̇ = u: the speeds of Lagrange's equations are the coordinate rates."""
         return u
 
+    def user_functions(self, t, q, qd, p=None):
+        """(L, Q − ∂D/∂q̇) at one state."""
+        t, q, qd = self._check(t, q, qd)
+        return self._lagrangian(t, q, qd, p), self._nonconservative(t, q, qd, p)
+
     def mass_matrix_and_forcing(self, t, q, qd, p=None):
         t, q, qd = self._check(t, q, qd)
         (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)

@@ -49,24 +49,38 @@ class GibbsAppell(AbstractDynamics):
         """q̇ = K(t, q, p) u."""
         return kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p) @ u
 
-    def mass_matrix_and_forcing(self, t, q, u, p=None):
+    def _check(self, t, q, u, p):
         q = check_vector(q, "q")
         u = check_vector(u, "u")
         t = jnp.asarray(t, q.dtype)
         kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p)  # shape check
+        return t, q, u
+
+    def _gibbs(self, t, q, u, ud, p):
+        value = call(self.gibbs, "Gibbs function S", self.time_dependent, GIBBS_ARGS,
+                     t, q, u, ud, p)
+        return scalar(value, "Gibbs function S")
+
+    def _active_forces(self, t, q, u, p):
+        if self.active_forces is None:
+            return jnp.zeros_like(u)
+        return vector(call(self.active_forces, "active forces Π", self.time_dependent,
+                           ACTIVE_ARGS, t, q, u, p), "active forces Π", u.shape)
+
+    def user_functions(self, t, q, u, p=None):
+        """(S at u̇ = 0, Π, q̇) at one state."""
+        t, q, u = self._check(t, q, u, p)
+        return (self._gibbs(t, q, u, jnp.zeros_like(u), p), self._active_forces(t, q, u, p),
+                self.coordinate_rates(t, q, u, p))
+
+    def mass_matrix_and_forcing(self, t, q, u, p=None):
+        t, q, u = self._check(t, q, u, p)
 
         def gibbs(ud):
-            value = call(self.gibbs, "Gibbs function S", self.time_dependent, GIBBS_ARGS,
-                         t, q, u, ud, p)
-            return scalar(value, "Gibbs function S")
+            return self._gibbs(t, q, u, ud, p)
 
         # One linearisation of ∇_u̇ S at u̇ = 0 gives the bias (its value) and M (its tangent
         # map, applied to the unit accelerations): forward-over-reverse.
         bias, hessian_times = jax.linearize(jax.grad(gibbs), jnp.zeros_like(u))
         mass_matrix = jax.vmap(hessian_times)(jnp.eye(u.shape[0], dtype=u.dtype))
-        if self.active_forces is None:
-            active = jnp.zeros_like(u)
-        else:
-            active = vector(call(self.active_forces, "active forces Π", self.time_dependent,
-                                 ACTIVE_ARGS, t, q, u, p), "active forces Π", u.shape)
-        return mass_matrix, active - bias
+        return mass_matrix, self._active_forces(t, q, u, p) - bias

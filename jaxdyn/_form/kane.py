@@ -39,6 +39,15 @@ class Kane(AbstractDynamics):
         """q̇ = K(t, q, p) u."""
         return self.system.coordinate_rates(t, q, u, p, self.kinematic_map)
 
+    def user_functions(self, t, q, u, p=None):
+        """(T, V, applied forces, D, q̇) at one state."""
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        t = jnp.asarray(t, q.dtype)
+        system = self.system
+        qd = self.coordinate_rates(t, q, u, p)
+        return (system.kinetic_energy(t, q, qd, p), system.potential_energy(t, q, p),
+                system.applied_forces(t, q, qd, p), system.dissipation_function(t, q, qd, p), qd)
+
     def mass_matrix_and_forcing(self, t, q, u, p=None):
         q = check_vector(q, "q")
         u = check_vector(u, "u")

@@ -39,10 +39,10 @@ class MultibodySystem(eqx.Module):
       the kinematic map) takes t first.
     """
 
-    bodies: tuple[Particle | RigidBody, ...]
+    bodies: tuple[Particle | RigidBody, ...] = eqx.field(converter=tuple)
     potential: Callable | None = None
     gravity: jax.Array | Callable | None = None
-    loads: tuple[PointForce | BodyTorque, ...] = ()
+    loads: tuple[PointForce | BodyTorque, ...] = eqx.field(default=(), converter=tuple)
     forces: Callable | None = None
     dissipation: Callable | None = None
     time_dependent: bool = eqx.field(default=False, static=True)
