@@ -57,8 +57,8 @@ def simulate(
       control. Defaults: `Dopri8` (8th order) with a `PIDController` at rtol = atol = 1e-10 in
       float64 (1e-6 in float32, near what that precision can hold) and an automatically chosen
       first step. Mechanics is smooth, so a high order pays: on a chaotic double pendulum over
-      10 s Dopri8 at 1e-10 is ten times more accurate than Tsit5 at 1e-10 for the same time
-      (benchmarks/bench_work_precision.py). Pass `solver=diffrax.Tsit5()` and looser
+      10 s Dopri8 at 1e-10 is 20 times more accurate than Tsit5 at 1e-10 for 1.25 times the
+      run time (benchmarks/bench_work_precision.py). Pass `solver=diffrax.Tsit5()` and looser
       tolerances for speed, or a fixed `dt0` with `stepsize_controller=
       diffrax.ConstantStepSize()` for fixed-step integration.
     - `max_steps`: step budget; exhausting it is an error (or `RESULTS.max_steps_reached` with
