@@ -35,7 +35,7 @@ class AbstractDynamics(eqx.Module):
     def user_functions(self, t, q, u, p=None):
         """Every user callback evaluated once, without derivatives (for trace-time checks)."""
 
-    def checked_equations(self, t, q, u, p=None):
+    def _checked_equations(self, t, q, u, p=None):
         """`mass_matrix_and_forcing`, after a trace-time check that no callback indexes past
         the end of q or u (which JAX would silently clamp)."""
         check_static_indexing(self.user_functions, t, q, u, p)
@@ -44,12 +44,12 @@ class AbstractDynamics(eqx.Module):
     @over_states("(),(n),(m)->(m,m)")
     def mass_matrix(self, t, q, u, p=None):
         """The mass matrix M of M u̇ = f (symmetric positive definite)."""
-        return self.checked_equations(t, q, u, p)[0]
+        return self._checked_equations(t, q, u, p)[0]
 
     @over_states("(),(n),(m)->(m)")
     def forcing(self, t, q, u, p=None):
         """The forcing f of M u̇ = f: every term of the equations except M u̇."""
-        return self.checked_equations(t, q, u, p)[1]
+        return self._checked_equations(t, q, u, p)[1]
 
     @reports_state
     @over_states("(),(n),(m)->(m)")

@@ -9,13 +9,12 @@ the error crosses a jaxdyn entry point such as `simulate`.
 
 import functools
 
-from jax.experimental import checkify
-
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import checkify
 
 _where: list[str] = []  # host-side; the first failing state of the current call
 
