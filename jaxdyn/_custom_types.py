@@ -1,13 +1,11 @@
-"""jaxtyping aliases shared by the whole library (checked at run time in tests only)."""
+"""jaxtyping aliases shared by the whole library, for signatures (not checked at run time)."""
 
-from typing import Any, Callable
+from typing import Any
 
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-Scalar = Float[Array, ""]
 RealScalarLike = float | int | Float[ArrayLike, ""]
 Coordinates = Float[Array, "n"]  # q
 Speeds = Float[Array, "m"]  # u (q̇ for Lagrangian dynamics)
 MassMatrix = Float[Array, "m m"]
 Params = PyTree[Any]  # p: any pytree, passed to every callback, never closed over
-Callback = Callable[..., Any]

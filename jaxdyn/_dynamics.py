@@ -4,6 +4,7 @@ import abc
 
 import equinox as eqx
 
+from ._custom_types import Coordinates, MassMatrix, Params, RealScalarLike, Speeds
 from ._errors import check_static_indexing, reports_state
 from ._linalg import solve_mass_matrix
 from ._state import over_states
@@ -24,11 +25,15 @@ class AbstractDynamics(eqx.Module):
     """
 
     @abc.abstractmethod
-    def coordinate_rates(self, t, q, u, p=None):
+    def coordinate_rates(
+        self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
+    ) -> Coordinates:
         """q̇ = K(t, q, p) u."""
 
     @abc.abstractmethod
-    def mass_matrix_and_forcing(self, t, q, u, p=None):
+    def mass_matrix_and_forcing(
+        self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
+    ) -> tuple[MassMatrix, Speeds]:
         """(M, f) of M u̇ = f, formed together since they share their derivative passes."""
 
     @abc.abstractmethod
