@@ -112,7 +112,7 @@ h = 1e-5
 loss_jit = jax.jit(loss)
 g_fd = float((loss_jit(l2 + h) - loss_jit(l2 - h)) / (2 * h))
 
-print(f"  loss at l2 = {float(l2)} m    : {float(loss_jit(l2)):+.10f}")
+print(f"  {f'loss at l2 = {float(l2)} m':24s}: {float(loss_jit(l2)):+.10f}")
 print(f"  dloss/dl2, autodiff     : {g_ad:+.10f}")
 print(f"  dloss/dl2, central FD   : {g_fd:+.10f}   (h = {h:g})")
 print(f"  relative difference     : {abs(g_ad - g_fd) / abs(g_fd):.1e}")

@@ -170,7 +170,7 @@ first, last = minima[0], minima[-1]
 measured = float((sol.q[last, 0] - sol.q[first, 0]) / (sol.ts[last] - sol.ts[first]))
 nutation_freq = 2 * np.pi * (len(minima) - 1) / float(sol.ts[last] - sol.ts[first])
 print(f"nutation: {len(minima) - 1} periods, measured frequency {nutation_freq:.3f} rad/s "
-      f"(fast-top estimate I₃ω₃/I₁ = {i3 * omega3 / i1:.3f})")
+      f"(leading-order fast-top estimate I₃ω₃/I₁ = {i3 * omega3 / i1:.3f})")
 print(f"nutation amplitude: θ ∈ [{float(sol.q[:, 1].min()):.6f}, {float(sol.q[:, 1].max()):.6f}]"
       f" rad (estimate θ₀ + 2 I₁ m g h sin θ₀/(I₃ω₃)² = "
       f"{theta0 + 2 * i1 * mgh * np.sin(theta0) / (i3 * omega3) ** 2:.6f})")
@@ -193,9 +193,9 @@ ax1.plot(sol.ts[window], sol.q[window, 1], label="θ (nutation)")
 ax1.set_xlabel("t [s]")
 ax1.set_ylabel("θ [rad]")
 ax1b = ax1.twinx()
-ax1b.plot(sol.ts[window], sol.qd[window, 0], color="C1", lw=0.8, label="ψ̇ (precession rate)")
-ax1b.axhline(gyroscopic, color="C2", ls="--", lw=0.8, label="m g h / (I₃ ω₃)")
-ax1b.set_ylabel("ψ̇ [rad/s]")
+ax1b.plot(sol.ts[window], sol.qd[window, 0], color="C1", lw=0.8, label="dψ/dt (precession rate)")
+ax1b.axhline(gyroscopic, color="C2", ls="--", lw=0.8, label="m g h / (I3 ω3)")
+ax1b.set_ylabel("dψ/dt [rad/s]")
 ax1.legend(loc="upper left")
 ax1b.legend(loc="upper right")
 ax1.set_title("first 0.5 s")

@@ -11,8 +11,9 @@ and the textbook equations are
     (3/2 M + m) ẍ + ½ m l (φ̈ cos φ − φ̇² sin φ) + k x = 0,
     ⅓ m l² φ̈ + ½ m l ẍ cos φ + ½ m g l sin φ = 0.
 
-Here the system is described by its bodies (a rolling disc and a rod), not by T, and the three
-formulations are compared with the textbook.
+The system is built twice: once as `jaxdyn.Lagrangian` from the textbook's T and V as written,
+and once from its bodies (a rolling disc and a rod) with all three formulations; every one is
+compared with the accelerations solved from the textbook's equations.
 
 Run: python examples/worked_25_3_disc_spring_rod.py
 """
@@ -25,6 +26,20 @@ jax.config.update("jax_enable_x64", True)
 
 import jaxdyn  # noqa: E402
 from jaxdyn.rotations import planar_rotation  # noqa: E402
+
+
+def kinetic(q, qd, p):
+    """The textbook's T, as written."""
+    (_, phi), (xd, phid) = q, qd
+    M, m, l = p["M"], p["m"], p["l"]
+    return (0.75 * M * xd**2 + 0.5 * m * xd**2 + m * l**2 * phid**2 / 6
+            + 0.5 * m * l * xd * phid * jnp.cos(phi))
+
+
+def potential(q, p):
+    """The textbook's V, as written (g = 9.81 m/s²)."""
+    x, phi = q
+    return 0.5 * p["k"] * x**2 - 0.5 * p["m"] * 9.81 * p["l"] * jnp.cos(phi)
 
 
 def disc_centre(q, p):
@@ -72,18 +87,20 @@ def textbook(q, qd, p):
 def main():
     p = dict(M=2.0, R=0.3, m=0.7, l=0.9, k=25.0)
     system = build()
-    formulations = {"Lagrange": system.lagrangian(), "Gibbs–Appell": system.gibbs_appell(),
-                    "Kane": jaxdyn.Kane(system)}
+    formulations = {"Lagrangian(T, V)": jaxdyn.Lagrangian(kinetic, potential),
+                    "bodies: Lagrange": system.lagrangian(),
+                    "bodies: Gibbs–Appell": system.gibbs_appell(),
+                    "bodies: Kane": jaxdyn.Kane(system)}
     print("25.3 rolling disc, spring and hinged rod: accelerations (ẍ, φ̈)")
     for q, qd in [([0.1, 0.5], [0.2, -1.0]), ([-0.3, 2.0], [1.5, 3.0])]:
         q, qd = jnp.array(q), jnp.array(qd)
         reference = textbook(np.asarray(q), np.asarray(qd), p)
-        print(f"  q = {q}, qd = {qd}\n    textbook      {reference}")
+        print(f"  q = {q}, qd = {qd}\n    {'textbook':21s} {reference}")
         for name, dynamics in formulations.items():
             ours = np.asarray(dynamics.accelerations(0.0, q, qd, p))
             diff = np.max(np.abs(ours - reference)) / np.max(np.abs(reference))
-            print(f"    {name:13s} {ours}   relative difference {diff:.1e}")
-    lagrangian = formulations["Lagrange"]
+            print(f"    {name:21s} {ours}   relative difference {diff:.1e}")
+    lagrangian = formulations["Lagrangian(T, V)"]
     sol = jaxdyn.simulate(lagrangian, jnp.array([0.1, 1.0]), jnp.zeros(2), p, t1=10.0,
                           ts=jnp.linspace(0.0, 10.0, 501))
     energy = lagrangian.energy(sol.ts, sol.q, sol.qd, p)
