@@ -91,16 +91,22 @@ def main():
                                max_steps=100_000).q[-1]
 
     difference = float(jnp.max(jnp.abs(jax.jit(baseline_solve)(p) - jaxdyn_solve(p))))
-    (_, base), (_, mine) = timed(baseline_solve, p, number=5), timed(jaxdyn_solve, p, number=5)
+    (base_compile, base), (mine_compile, mine) = (timed(baseline_solve, p, number=5),
+                                                  timed(jaxdyn_solve, p, number=5))
     print(f"{'simulate 10 s (Dopri8, tol 1e-10)':34s} {1e3 * base:10.2f} ms {1e3 * mine:8.2f} ms "
           f"{mine / base:6.2f}   (final states differ by {difference:.1e})")
+    print(f"{'  compile':34s} {base_compile:10.3f} s  {mine_compile:8.3f} s  "
+          f"{mine_compile / base_compile:6.2f}")
     grad_base = jax.grad(lambda p: jnp.sum(baseline_solve(p) ** 2))
     grad_mine = jax.grad(lambda p: jnp.sum(jaxdyn_solve(p) ** 2))
     gb, gm = jax.jit(grad_base)(p), jax.jit(grad_mine)(p)
     gdiff = max(float(np.abs(gb[k] - gm[k])) for k in gb)
-    (_, base), (_, mine) = timed(grad_base, p, number=3), timed(grad_mine, p, number=3)
+    (base_compile, base), (mine_compile, mine) = (timed(grad_base, p, number=3),
+                                                  timed(grad_mine, p, number=3))
     print(f"{'grad of simulate w.r.t. p':34s} {1e3 * base:10.2f} ms {1e3 * mine:8.2f} ms "
           f"{mine / base:6.2f}   (gradients differ by {gdiff:.1e})")
+    print(f"{'  compile':34s} {base_compile:10.3f} s  {mine_compile:8.3f} s  "
+          f"{mine_compile / base_compile:6.2f}")
 
 
 if __name__ == "__main__":
