@@ -61,3 +61,9 @@ def vector(value, name: str, shape: tuple[int, ...]):
     if value.shape != shape:
         raise ValueError(f"{name} must return an array of shape {shape}, got shape {value.shape}.")
     return value
+
+
+def time_rate(t, time_dependent: bool):
+    """dt/dt along the motion, as the time tangent of the JVPs: 1 brings in the explicit ∂/∂t
+    terms of a time-dependent system; 0 skips them for an autonomous one."""
+    return jnp.ones_like(t) if time_dependent else jnp.zeros_like(t)

@@ -60,8 +60,8 @@ class AbstractDynamics(eqx.Module):
     @over_states("(),(n),(m)->(m)")
     def accelerations(self, t, q, u, p=None):
         """u̇ = M⁻¹ f by Cholesky; an error names the state if M is singular there."""
-        check_static_indexing(self.user_functions, t, q, u, p)
-        return solve_equations(self, t, q, u, p)
+        mass_matrix, forcing = self._checked_equations(t, q, u, p)
+        return solve_mass_matrix(mass_matrix, forcing, t, q, u)
 
 
 def solve_equations(dynamics: AbstractDynamics, t, q, u, p):

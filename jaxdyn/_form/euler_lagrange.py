@@ -6,7 +6,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._convention import CONFIGURATION_ARGS, VELOCITY_ARGS, call, scalar, vector
+from .._convention import (
+    CONFIGURATION_ARGS,
+    VELOCITY_ARGS,
+    call,
+    scalar,
+    time_rate,
+    vector,
+)
 from .._dynamics import AbstractDynamics
 from .._state import check_vector, over_states
 
@@ -94,10 +101,6 @@ class Lagrangian(AbstractDynamics):
         qd = check_vector(qd, "qd", q.shape[0])
         return jnp.asarray(t, q.dtype), q, qd
 
-    def _time_rate(self, t):
-        # dt/dt along the motion: 1 brings in ∂²L/∂q̇∂t; 0 skips it for autonomous systems.
-        return jnp.ones_like(t) if self.time_dependent else jnp.zeros_like(t)
-
     def _linearised_momentum(self, t, q, qd, p):
         """((∂L/∂q̇, ∂L/∂q), their linearisation in (t, q, q̇))."""
         def gradients(t, q, qd):
@@ -120,7 +123,7 @@ class Lagrangian(AbstractDynamics):
         (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)
         n = q.shape[0]
         # Tangents: row 0 is d/dt along the motion at q̈ = 0, rows 1..n are the unit speeds.
-        t_dot = jnp.concatenate([self._time_rate(t)[None], jnp.zeros(n, t.dtype)])
+        t_dot = jnp.concatenate([time_rate(t, self.time_dependent)[None], jnp.zeros(n, t.dtype)])
         q_dot = jnp.concatenate([qd[None], jnp.zeros((n, n), q.dtype)])
         qd_dot = jnp.concatenate([jnp.zeros((1, n), qd.dtype), jnp.eye(n, dtype=qd.dtype)])
         momentum_rates, _ = jax.vmap(linear)(t_dot, q_dot, qd_dot)
@@ -139,7 +142,7 @@ class Lagrangian(AbstractDynamics):
         t, q, qd = self._check(t, q, qd)
         qdd = check_vector(qdd, "qdd", q.shape[0])
         (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)
-        momentum_rate, _ = linear(self._time_rate(t), qd, qdd)
+        momentum_rate, _ = linear(time_rate(t, self.time_dependent), qd, qdd)
         return momentum_rate - dL_dq - self._nonconservative(t, q, qd, p)
 
     @over_states("(),(n),(n)->()")

@@ -6,7 +6,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._convention import CONFIGURATION_ARGS, VELOCITY_ARGS, call, scalar, vector
+from .._convention import (
+    CONFIGURATION_ARGS,
+    VELOCITY_ARGS,
+    call,
+    scalar,
+    time_rate,
+    vector,
+)
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
 from .._speeds import coordinate_motion, kinematic_matrix
@@ -64,8 +71,7 @@ class MultibodySystem(eqx.Module):
                 )
 
     def _t_dot(self, t):
-        # d t/dt: 1 makes the JVPs include ∂/∂t terms; 0 skips them for autonomous systems.
-        return jnp.ones_like(t) if self.time_dependent else jnp.zeros_like(t)
+        return time_rate(t, self.time_dependent)
 
     # -- energies and forces on (t, q, q̇): everything Lagrange's equations need ---------------
 
