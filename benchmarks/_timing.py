@@ -1,28 +1,56 @@
-"""Timing helpers shared by the benchmarks: compilation and run time measured separately."""
+"""Timing helpers shared by the benchmarks.
+
+Machines are shared and noisy, so candidates are always timed side by side: compiled first
+(compile time recorded apart), then run in interleaved rounds (every candidate once per round,
+in turn) and summarised by the median over rounds. Ratios are formed from those medians.
+"""
 
 import statistics
 import time
 
 import jax
+import jax.numpy as jnp
 
 
-def timed(fn, *args, number=200, rounds=7):
-    """(compile seconds, run seconds per call) for `fn` jit-compiled on `args`.
-
-    Compilation is the first call of a fresh `jax.jit` (trace, compile, one run); the run time
-    is the median over `rounds` of the mean over `number` later calls, through `jax.jit`'s
-    dispatch as a user calls it (an AOT-compiled executable dispatches more slowly when the
-    program holds host callbacks, as jaxdyn's error checks do).
-    """
-    compiled = jax.jit(lambda *a: fn(*a))
+def compile_seconds(fn, *args):
+    """Seconds for the first call of a fresh `jax.jit(fn)`: trace, compile and one run."""
     start = time.perf_counter()
-    jax.block_until_ready(compiled(*args))
-    compile_seconds = time.perf_counter() - start
-    samples = []
+    jax.block_until_ready(jax.jit(fn)(*args))
+    return time.perf_counter() - start
+
+
+def interleaved(candidates, *, number, rounds=9):
+    """Median seconds per call of each candidate.
+
+    `candidates`: {name: (callable, args)}; each callable is called as given (wrap it in
+    `jax.jit` yourself), first once to compile, then `number` times per round.
+    """
+    for fn, args in candidates.values():
+        jax.block_until_ready(fn(*args))
+    samples = {name: [] for name in candidates}
     for _ in range(rounds):
-        start = time.perf_counter()
-        for _ in range(number):
-            out = compiled(*args)
-        jax.block_until_ready(out)
-        samples.append((time.perf_counter() - start) / number)
-    return compile_seconds, statistics.median(samples)
+        for name, (fn, args) in candidates.items():
+            start = time.perf_counter()
+            for _ in range(number):
+                out = fn(*args)
+            jax.block_until_ready(out)
+            samples[name].append((time.perf_counter() - start) / number)
+    return {name: statistics.median(values) for name, values in samples.items()}
+
+
+def in_loop(accelerations, iterations):
+    """A jitted function timing `accelerations(t, q, qd, p)` inside a compiled loop, as a solver
+    calls it: `iterations` steps of semi-implicit Euler with a tiny step, so that every
+    evaluation sees a new state (nothing can be hoisted out of the loop) and no dispatch or
+    transfer is counted. Divide its run time by `iterations`."""
+    def run(t, q, qd, p):
+        h = jnp.asarray(1e-9, q.dtype)
+
+        def step(_, state):
+            q, qd = state
+            qd = qd + h * accelerations(t, q, qd, p)
+            return q + h * qd, qd
+
+        return jax.lax.fori_loop(0, iterations, step, (q, qd))
+
+    return jax.jit(run)

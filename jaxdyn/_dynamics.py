@@ -3,11 +3,15 @@
 import abc
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 from ._custom_types import Coordinates, MassMatrix, Params, RealScalarLike, Speeds
-from ._errors import check_static_indexing, reports_state
-from ._linalg import solve_mass_matrix
-from ._state import over_states
+from ._errors import check_static_indexing, error_if
+from ._linalg import NONFINITE_FORCING, SINGULAR_MASS_MATRIX, solve, solve_mass_matrix
+from ._state import public_method
+from ._unroll import Symbol, is_constant, structure, unrolled
 
 
 class AbstractDynamics(eqx.Module):
@@ -19,9 +23,12 @@ class AbstractDynamics(eqx.Module):
     Gibbs–Appell and Kane formulations may choose other speeds (and fewer of them than
     coordinates, for nonholonomic systems).
 
-    Subclasses implement `coordinate_rates` and `mass_matrix_and_forcing`; the accelerations
-    follow by a Cholesky solve. All public methods take ``(t, q, u, p=None)`` and also accept
-    stacked states (leading axes broadcast).
+    Subclasses implement `coordinate_rates`, `form_equations` (their own way of forming M and
+    f) and `user_functions`. Everything else follows here: the accelerations by an LDLᵀ
+    solve, small systems evaluated as straight-line scalar code (`jaxdyn._unroll`), and the
+    public methods, which take ``(t, q, u, p=None)``, accept stacked states (leading axes
+    broadcast), compile once per system and shape, and can be passed to `jax.jit` as bound
+    methods.
     """
 
     @abc.abstractmethod
@@ -31,41 +38,124 @@ class AbstractDynamics(eqx.Module):
         """q̇ = K(t, q, p) u."""
 
     @abc.abstractmethod
-    def mass_matrix_and_forcing(
+    def form_equations(
         self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
     ) -> tuple[MassMatrix, Speeds]:
-        """(M, f) of M u̇ = f, formed together since they share their derivative passes."""
+        """(M, f) of M u̇ = f for one state, as this formulation forms them."""
 
     @abc.abstractmethod
     def user_functions(self, t, q, u, p=None):
         """Every user callback evaluated once, without derivatives (for trace-time checks)."""
 
-    def _checked_equations(self, t, q, u, p=None):
-        """`mass_matrix_and_forcing`, after a trace-time check that no callback indexes past
-        the end of q or u (which JAX would silently clamp)."""
-        check_static_indexing(self.user_functions, t, q, u, p)
-        return self.mass_matrix_and_forcing(t, q, u, p)
+    def __hash__(self):
+        # By structure (callbacks, static fields, array shapes), so that a bound method such
+        # as `jax.jit(system.accelerations)` can be hashed although the system holds arrays;
+        # equal systems have equal hashes, and `==` (Equinox's, by value) settles collisions.
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        return hash((treedef, tuple(
+            (x.shape, str(x.dtype)) if eqx.is_array(x) else x for x in leaves)))
 
-    @over_states("(),(n),(m)->(m,m)")
+    @public_method("(),(n),(m)->(m,m),(m)")
+    def mass_matrix_and_forcing(self, t, q, u, p=None):
+        """(M, f) of M u̇ = f, formed together (they share their derivative passes)."""
+        check_static_indexing(self.user_functions, t, q, u, p)
+        return unrolled(self.form_equations, t, q, u, p)
+
+    @public_method("(),(n),(m)->(m,m)")
     def mass_matrix(self, t, q, u, p=None):
         """The mass matrix M of M u̇ = f (symmetric positive definite)."""
-        return self._checked_equations(t, q, u, p)[0]
+        check_static_indexing(self.user_functions, t, q, u, p)
+        return unrolled(lambda *args: self.form_equations(*args)[0], t, q, u, p)
 
-    @over_states("(),(n),(m)->(m)")
+    @public_method("(),(n),(m)->(m)")
     def forcing(self, t, q, u, p=None):
         """The forcing f of M u̇ = f: every term of the equations except M u̇."""
-        return self._checked_equations(t, q, u, p)[1]
+        check_static_indexing(self.user_functions, t, q, u, p)
+        return unrolled(lambda *args: self.form_equations(*args)[1], t, q, u, p)
 
-    @reports_state
-    @over_states("(),(n),(m)->(m)")
-    def accelerations(self, t, q, u, p=None):
-        """u̇ = M⁻¹ f by Cholesky; an error names the state if M is singular there."""
-        mass_matrix, forcing = self._checked_equations(t, q, u, p)
-        return solve_mass_matrix(mass_matrix, forcing, t, q, u)
+    @public_method("(),(n),(m)->(m)")
+    def accelerations(self, t, q, u, p=None, *, throw: bool = True):
+        """u̇ = M⁻¹ f (an LDLᵀ factorisation of M).
+
+        Where M is singular or f not finite, `throw=True` raises an error that names the state
+        (t, q, u); `throw=False` returns NaN there instead, with no branch: the cheapest form
+        inside a compiled loop of your own (this is what `simulate` integrates).
+        """
+        check_static_indexing(self.user_functions, t, q, u, p)
+        _, accelerations, singular, nonfinite = equations_of_motion(self, t, q, u, p)
+        if not throw:
+            return accelerations
+        return error_if(accelerations, [(nonfinite, NONFINITE_FORCING),
+                                        (singular, SINGULAR_MASS_MATRIX)], (t, q, u))
 
 
-def solve_equations(dynamics: AbstractDynamics, t, q, u, p):
-    """u̇ = M⁻¹ f for one state, without the trace-time checks (for use inside solvers, where
-    `simulate` has run them once)."""
-    mass_matrix, forcing = dynamics.mass_matrix_and_forcing(t, q, u, p)
-    return solve_mass_matrix(mass_matrix, forcing, t, q, u)
+@eqx.filter_jit  # traced once per system and shapes; inlined into every caller's program
+def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=None):
+    """(q̇, u̇, singular, nonfinite) for one state, with no checks and no branches.
+
+    u̇ is NaN where M is singular or f not finite (the flags say which), so that a solver
+    rejects the step instead of stopping: `simulate` diagnoses the failure after the solve.
+    Small systems are evaluated as straight-line scalar code with the LDLᵀ factorisation
+    written out (structural zeros of M fold away, so independent subsystems are solved apart
+    for free); larger ones as array programs, M factored by LAPACK block by block when it is
+    block-diagonal. With `factorisation` (of a mass matrix that does not depend on the state,
+    see `constant_mass_matrix`) only f is formed.
+    """
+    def equations(t, q, u, p, *, small):
+        rates = dynamics.coordinate_rates(t, q, u, p)
+        if factorisation is not None:
+            forcing = dynamics.form_equations(t, q, u, p)[1]
+            nonfinite = ~jnp.all(jnp.isfinite(forcing))
+            accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
+            return rates, accelerations, factorisation.singular, nonfinite
+        mass_matrix, forcing = dynamics.form_equations(t, q, u, p)
+        blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
+        return rates, *solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
+
+    return unrolled(lambda *args: equations(*args, small=True), t, q, u, p,
+                    otherwise=lambda *args: equations(*args, small=False))
+
+
+def _mass_matrix_structure(dynamics, t, q, u, p):
+    return structure(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
+                     tags=("t", "q", "u", "p"))
+
+
+def mass_matrix_blocks(dynamics, t, q, u, p):
+    """The diagonal blocks of M after a permutation (its structural zeros found at trace
+    time), or None when M is one block or too large to analyse."""
+    elements = _mass_matrix_structure(dynamics, t, q, u, p)
+    if elements is None:
+        return None
+    coupled = np.array([[not (is_constant(e) and e == 0) for e in row] for row in elements])
+    blocks = _connected_components(coupled | coupled.T)
+    return None if len(blocks) == 1 else blocks
+
+
+def constant_mass_matrix(dynamics, t, q, u, p) -> bool:
+    """True if M provably depends on the parameters alone (Cartesian coordinates, linear
+    systems): it can then be factored once per solve instead of at every step."""
+    elements = _mass_matrix_structure(dynamics, t, q, u, p)
+    if elements is None:
+        return False
+    return not any(isinstance(e, Symbol) and e.depends & {"t", "q", "u"}
+                   for e in elements.ravel())
+
+
+def _connected_components(adjacency):
+    """Groups of indices connected through the nonzero pattern (each sorted)."""
+    m = adjacency.shape[0]
+    group = list(range(m))
+
+    def find(i):
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    for i, j in zip(*np.nonzero(adjacency)):
+        group[find(i)] = find(j)
+    components = {}
+    for i in range(m):
+        components.setdefault(find(i), []).append(i)
+    return sorted(tuple(c) for c in components.values())

@@ -1,10 +1,11 @@
-"""Value-dependent errors that name the state where they happened.
+"""Value-dependent errors that name what went wrong and where.
 
-`eqx.error_if` stops a computation with a fixed message. For a singular mass matrix the user
-also needs to know *where*: the time and state. Traced values cannot be formatted into an
-`eqx.error_if` message, so the failing branch first hands the state to the host (a
-`pure_callback` that only runs once the error is certain), and `reports_state` appends it when
-the error crosses a jaxdyn entry point such as `simulate`.
+A check is one `lax.cond` on "did anything fail" (reduced over a vmapped batch, so it stays a
+branch), whose failing side calls the host: there the message is formatted with the values
+that matter (the time and state of a singular mass matrix, the parameter leaf holding a NaN)
+and raised. Nothing runs on the host unless a check fails. `reports_state` turns such an error
+into a plain `RuntimeError` with jaxdyn's message when it leaves a jaxdyn entry point; inside a
+caller's own `jax.jit` the message (with the state) still appears in JAX's runtime error.
 """
 
 import functools
@@ -16,34 +17,61 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import checkify
 
-_where: list[str] = []  # host-side; the first failing state of the current call
+_where: list[str] = []  # host-side: the message of the first failed check of the current call
 
 
-def _record(msg, pred, t, q, u):
-    pred = np.asarray(pred)
-    if pred.any() and not _where:
-        state = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip("tqu", (t, q, u)))
-        _where.append(f"{msg}\n\nIt happened at {state}.")
-    return pred
+class _CheckFailed(RuntimeError):
+    """Raised on the host by a failed check."""
 
 
-def error_if_at_state(x, pred, msg: str, t, q, u):
-    """`eqx.error_if(x, pred, msg)`, remembering the state (t, q, u) where `pred` held."""
-    t, q, u = jax.lax.stop_gradient((t, q, u))  # the record is diagnostics only
+def error_if(x, checks, state=None):
+    """`x`, or an error if one of `checks` fails.
 
-    def record():
-        struct = jax.ShapeDtypeStruct(jnp.shape(pred), jnp.bool_)
-        callback = functools.partial(_record, msg)
-        return jax.pure_callback(callback, struct, pred, t, q, u, vmap_method="sequential")
+    `checks`: a sequence of (pred, message) with boolean scalar preds; the first true one is
+    reported. `state`: None, or (t, q, u) to end the message with "It happened at t = …, q =
+    […], u = […]." (under vmap, the state of the first failing batch member). Derivatives pass
+    through `x` unchanged.
+    """
+    preds = jnp.stack([jnp.asarray(pred) for pred, _ in checks])
+    messages = tuple(message for _, message in checks)
+    state = () if state is None else jax.lax.stop_gradient(tuple(state))
+    return _check(x, preds, state, messages)
 
-    # `unvmap_any` keeps the `cond` a real branch under vmap, so the host is only
-    # called when some batch member has failed.
-    pred = jax.lax.cond(eqxi.unvmap_any(pred), record, lambda: pred)
-    return eqx.error_if(x, pred, msg)
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _check(x, preds, state, messages):
+    def fail():
+        struct = jax.eval_shape(lambda: x)
+        raise_ = functools.partial(_raise, messages, len(state) > 0)
+        return jax.pure_callback(raise_, struct, x, preds, *state, vmap_method="sequential")
+
+    # `unvmap_any` keeps the `cond` a real branch under vmap: the host is only called when some
+    # batch member has failed.
+    return jax.lax.cond(eqxi.unvmap_any(jnp.any(preds)), fail, lambda: x)
+
+
+@_check.defjvp
+def _check_jvp(messages, primals, tangents):
+    x, preds, state = primals
+    return _check(x, preds, state, messages), tangents[0]
+
+
+def _raise(messages, with_state, x, preds, *state):
+    preds = np.asarray(preds)
+    if not preds.any():  # another batch member failed
+        return jax.tree_util.tree_map(np.asarray, x)
+    message = messages[int(np.argmax(preds))]
+    if with_state:
+        values = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip("tqu", state))
+        message = f"{message}\n\nIt happened at {values}."
+    if not _where:
+        _where.append(message)
+    raise _CheckFailed(message)
 
 
 def reports_state(fn):
-    """Decorate an entry point so that errors raised by `error_if_at_state` name the state."""
+    """Decorate an entry point so that a failed `error_if` leaves it as a `RuntimeError`
+    carrying jaxdyn's message alone (not the runtime's wrapping of it)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -53,40 +81,45 @@ def reports_state(fn):
         except Exception:
             if not _where:
                 raise
-            message = _where.pop()
-            # The error was ours: replace Equinox's generic runtime-error text by the message
-            # and the state.
-            raise RuntimeError(message) from None
+            raise RuntimeError(_where.pop()) from None
 
     return wrapper
 
 
-def nonfinite_tree_check(tree, what: str):
-    """Error (naming the leaf) if any floating-point leaf of `tree` holds NaN or inf."""
-    leaves = jax.tree_util.tree_leaves_with_path(tree)
-    checked = []
-    for path, leaf in leaves:
-        if eqx.is_inexact_array(leaf):
-            name = f"{what}{jax.tree_util.keystr(path)}"
-            leaf = eqx.error_if(
-                leaf,
-                ~jnp.all(jnp.isfinite(leaf)),
-                f"{name} contains NaN or inf. Check the initial state and parameters you "
-                "passed (a division by zero or a failed earlier computation upstream).",
-            )
-        checked.append(leaf)
-    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(tree), checked)
+def check_finite(**trees):
+    """The keyword arguments (pytrees) as a tuple, or an error naming the first floating-point
+    leaf that holds NaN or inf, as in ``p['spring']['k']``."""
+    values, checks, positions = [], [], []
+    flat = []
+    for what, tree in trees.items():
+        leaves, treedef = jax.tree_util.tree_flatten_with_path(tree)
+        flat.append((treedef, len(leaves)))
+        for path, leaf in leaves:
+            if eqx.is_inexact_array(leaf):
+                positions.append(len(values))
+                checks.append((~jnp.all(jnp.isfinite(leaf)),
+                               f"{what}{jax.tree_util.keystr(path)} contains NaN or inf. Check "
+                               "the initial state and parameters you passed (a division by zero "
+                               "or a failed earlier computation upstream)."))
+            values.append(leaf)
+    if checks:
+        checked = error_if([values[i] for i in positions], checks)
+        for i, leaf in zip(positions, checked):
+            values[i] = leaf
+    out, start = [], 0
+    for treedef, count in flat:
+        out.append(jax.tree_util.tree_unflatten(treedef, values[start:start + count]))
+        start += count
+    return tuple(out)
 
 
 def _block(tree):
     # Callback errors surface when results are ready: wait here so they pass through `wrapper`.
     # Under an outer trace there is nothing to wait for.
-    def block(x):
-        if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer):
-            x.block_until_ready()
-        return x
-
-    return jax.tree_util.tree_map(block, tree)
+    leaves = jax.tree_util.tree_leaves(tree)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return tree
+    return jax.block_until_ready(tree)
 
 
 def check_static_indexing(fn, *args):

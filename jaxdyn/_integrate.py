@@ -5,10 +5,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._dynamics import AbstractDynamics, solve_equations
-from ._errors import check_static_indexing, nonfinite_tree_check, reports_state
+from ._dynamics import AbstractDynamics, constant_mass_matrix, equations_of_motion
+from ._linalg import UNROLL_MAX, factorise
+from ._errors import check_finite, check_static_indexing, error_if, reports_state
 from ._solution import RESULTS, Solution
-from ._state import check_vector
+from ._state import check_vector, numbers_as_arrays, state_dtype
 
 MAX_STEPS = (
     "The solver took the maximum number of steps (max_steps) before reaching t1. Increase "
@@ -18,9 +19,10 @@ MAX_STEPS = (
 
 
 def _vector_field(t, y, args):
-    dynamics, p = args
+    dynamics, p, factorisation = args
     q, u = y
-    return dynamics.coordinate_rates(t, q, u, p), solve_equations(dynamics, t, q, u, p)
+    rates, accelerations, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+    return rates, accelerations
 
 
 @reports_state
@@ -34,6 +36,7 @@ def simulate(
     t1,
     ts=None,
     dense: bool = False,
+    save: tuple[str, ...] = ("q", "u", "qd"),
     solver: diffrax.AbstractSolver = diffrax.Dopri8(),
     rtol: float | None = None,
     atol: float | None = None,
@@ -47,42 +50,56 @@ def simulate(
 
     **Arguments:**
 
-    - `dynamics`: any `jaxdyn.AbstractDynamics` (`Lagrangian`, and later formulations).
+    - `dynamics`: any `jaxdyn.AbstractDynamics` (`Lagrangian`, `GibbsAppell`, `Kane`).
     - `q0`, `u0`: initial coordinates (n,) and speeds (m,) (for a `Lagrangian`, u0 = q̇0).
     - `p`: parameters, any pytree; differentiate the result with respect to it freely.
     - `t0`, `t1`: the interval; `t1 < t0` integrates backwards.
     - `ts`: times to save at; if None only t1 is saved.
     - `dense`: keep the dense interpolant (`Solution.evaluate`).
+    - `save`: which of "q", "u", "qd" to save at `ts`; the others are None in the solution.
+      Saving less interpolates and stores less in every step (and "qd" = K(q) u is only
+      formed when asked for).
     - `solver`, `rtol`, `atol`, `dt0`, `stepsize_controller`: the diffrax solver and step-size
       control. Defaults: `Dopri8` (8th order) with a `PIDController` at rtol = atol = 1e-10 in
       float64 (1e-6 in float32, near what that precision can hold) and an automatically chosen
-      first step. Mechanics is smooth, so a high order pays: on a chaotic double pendulum over
-      10 s Dopri8 at 1e-10 is 20 times more accurate than Tsit5 at 1e-10 for 1.25 times the
-      run time (benchmarks/bench_work_precision.py). Pass `solver=diffrax.Tsit5()` and looser
-      tolerances for speed, or a fixed `dt0` with `stepsize_controller=
-      diffrax.ConstantStepSize()` for fixed-step integration.
+      first step. Mechanics is smooth, so a high order pays (see the solver guide in the
+      README and benchmarks/bench_work_precision.py). Pass `solver=diffrax.Tsit5()` and
+      looser tolerances for speed, or a fixed `dt0` with
+      `stepsize_controller=diffrax.ConstantStepSize()` for fixed-step integration.
     - `max_steps`: step budget; exhausting it is an error (or `RESULTS.max_steps_reached` with
       `throw=False`).
-    - `adjoint`: how to differentiate; the default `RecursiveCheckpointAdjoint` differentiates
-      the discrete solve exactly, which is what matches finite differences.
-    - `throw`: raise on solver failure; if False, inspect `Solution.result`.
+    - `adjoint`: how to differentiate. The default, diffrax's `RecursiveCheckpointAdjoint`,
+      is reverse mode through the discrete solve (exactly what finite differences of the
+      solve give) with about √(2 max_steps) checkpoints, a memory bound that also holds under
+      `vmap`. For few parameters and many outputs, `diffrax.ForwardMode()` with `jax.jacfwd`
+      or `jax.jvp` is cheaper on systems beyond a few coordinates; for one long solve,
+      `RecursiveCheckpointAdjoint(checkpoints=...)` with a checkpoint per step avoids
+      recomputation. Measured costs: benchmarks/README.md.
+    - `throw`: raise on failure; if False, inspect `Solution.result`.
 
     **Returns:** a `jaxdyn.Solution`.
 
-    Initial state and parameters are checked for NaN/inf; a singular mass matrix met during
-    the solve stops it with an error naming the time and state.
+    Numbers (t0, t1, ts, tolerances, dt0, and every float or int in `p`) are traced, so
+    changing them reuses the compiled solve. The initial state and parameters are checked for
+    NaN/inf. The right-hand side carries no checks: where the mass matrix is singular or the
+    forcing not finite it returns NaN, the solver rejects the step and shrinks it, and when no
+    step however small gets past a state the solve stops and names the state where the
+    equations fail (`RESULTS.singular_mass_matrix`, `nonfinite_forcing`,
+    `nonfinite_equations`).
     """
-    # Python floats in p become arrays: traced, not baked into the compiled solve (and so no
-    # recompilation when a parameter value changes).
-    p = jax.tree_util.tree_map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, p)
-    return _simulate(dynamics, q0, u0, p, t0=t0, t1=t1, ts=ts, dense=dense, solver=solver,
-                     rtol=rtol, atol=atol, dt0=dt0, stepsize_controller=stepsize_controller,
-                     max_steps=max_steps, adjoint=adjoint, throw=throw)
+    numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), state_dtype(q0, u0))
+    # Few arguments: binding them is part of the per-call cost.
+    save = (save,) if isinstance(save, str) else tuple(save)
+    if not save or set(save) - {"q", "u", "qd"}:
+        raise ValueError(f"save must name some of 'q', 'u', 'qd', got {save!r}.")
+    options = (dense, save, solver, stepsize_controller, max_steps, adjoint, throw)
+    return _simulate(dynamics, q0, u0, numbers, options)
 
 
 @eqx.filter_jit
-def _simulate(dynamics, q0, u0, p, *, t0, t1, ts, dense, solver, rtol, atol, dt0,
-              stepsize_controller, max_steps, adjoint, throw):
+def _simulate(dynamics, q0, u0, numbers, options):
+    p, t0, t1, ts, rtol, atol, dt0 = numbers
+    dense, save, solver, stepsize_controller, max_steps, adjoint, throw = options
     q0 = check_vector(q0, "q0")
     u0 = check_vector(u0, "u0")
     if q0.dtype != u0.dtype:
@@ -99,17 +116,29 @@ def _simulate(dynamics, q0, u0, p, *, t0, t1, ts, dense, solver, rtol, atol, dt0
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
-    q0 = nonfinite_tree_check(q0, "q0")
-    u0 = nonfinite_tree_check(u0, "u0")
-    p = nonfinite_tree_check(p, "p")
+    q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
+    # A mass matrix of the parameters alone is factored once, here, not at every step.
+    factorisation = None
+    if constant_mass_matrix(dynamics, t0, q0, u0, p):
+        factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p),
+                                  unrolled=u0.shape[0] <= UNROLL_MAX)
+
+    keep_q, keep_u = "q" in save or "qd" in save, "u" in save or "qd" in save
+
+    def observe(t, y, args):
+        return y[0] if keep_q else None, y[1] if keep_u else None
 
     if ts is None:
-        saveat = diffrax.SaveAt(t1=True, dense=dense)
+        requested = diffrax.SubSaveAt(t1=True, fn=observe)
     else:
         ts = jnp.asarray(ts, dtype)
         if ts.ndim != 1:
             raise ValueError(f"ts must be a 1-D array of save times, got shape {ts.shape}.")
-        saveat = diffrax.SaveAt(ts=ts, dense=dense)
+        requested = diffrax.SubSaveAt(ts=ts, fn=observe)
+    # The last state reached is saved too: where the solve stops early, it is the state from
+    # which the failure is diagnosed.
+    saveat = diffrax.SaveAt(subs=[requested, diffrax.SubSaveAt(t1=True)], dense=dense,
+                            controller_state=True)
     if stepsize_controller is None:
         default = 1e-10 if jnp.finfo(dtype).bits == 64 else 1e-6
         stepsize_controller = diffrax.PIDController(
@@ -124,24 +153,35 @@ def _simulate(dynamics, q0, u0, p, *, t0, t1, ts, dense, solver, rtol, atol, dt0
         t1,
         dt0,
         (q0, u0),
-        args=(dynamics, p),
+        args=(dynamics, p, factorisation),
         saveat=saveat,
-        stepsize_controller=stepsize_controller,
+        stepsize_controller=_guard(stepsize_controller),
         adjoint=adjoint,
         max_steps=max_steps,
         throw=False,  # raised below, with jaxdyn's own messages
     )
-    q, u = solution.ys
+    (q, u), (q_last, u_last) = solution.ys
+    t_last = solution.ts[1][0]
+    stalled = solution.controller_state[-1]
+    result, failure = _diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
+                                stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
+    result = RESULTS.where(stalled, result, RESULTS.promote(solution.result))
+    ts_out = solution.ts[0]
     if throw:
-        q = eqx.error_if(q, solution.result == RESULTS.max_steps_reached, MAX_STEPS)
-        q = solution.result.error_if(q, solution.result != RESULTS.successful)
-    qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(solution.ts, q, u, p)
+        ts_out = error_if(ts_out, [(result == code, RESULTS[code]) for code in (
+            RESULTS.singular_mass_matrix, RESULTS.nonfinite_forcing,
+            RESULTS.nonfinite_equations)], failure)
+        ts_out = error_if(ts_out, [(result == RESULTS.max_steps_reached, MAX_STEPS)])
+        ts_out = result.error_if(ts_out, result != RESULTS.successful)
+    qd = None
+    if "qd" in save:
+        qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
     return Solution(
-        ts=solution.ts,
-        q=q,
-        u=u,
+        ts=ts_out,
+        q=q if "q" in save else None,
+        u=u if "u" in save else None,
         qd=qd,
-        result=solution.result,
+        result=result,
         num_steps=solution.stats["num_steps"],
         num_accepted_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
@@ -153,7 +193,8 @@ def _check_shapes(dynamics, t0, q0, u0, p):
     """Trace the dynamics once on the initial state, so that shape errors in user callbacks
     are reported before the solve with the shapes involved."""
     check_static_indexing(dynamics.user_functions, t0, q0, u0, p)
-    rates, accelerations = eqx.filter_eval_shape(_vector_field, t0, (q0, u0), (dynamics, p))
+    rates, accelerations = eqx.filter_eval_shape(_vector_field, t0, (q0, u0),
+                                                 (dynamics, p, None))
     if rates.shape != q0.shape:
         raise ValueError(
             f"coordinate_rates returned shape {rates.shape} for q0 of shape {q0.shape}."
@@ -163,3 +204,128 @@ def _check_shapes(dynamics, t0, q0, u0, p):
             f"The dynamics expects {accelerations.shape[0]} speeds but u0 has shape "
             f"{u0.shape}."
         )
+
+
+# -- failures of the equations of motion: detected in the step-size controller, diagnosed after
+# the solve -------------------------------------------------------------------------------------
+
+
+def _guard(controller):
+    if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+        return _GuardedAdaptive(controller)
+    return _GuardedFixed(controller)
+
+
+def _guard_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
+    t_next, state = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
+    return t_next, (state, jnp.abs(t1 - t0), jnp.array(False))
+
+
+def _guard_adapt(controller, can_shrink, t0, t1, y0, y1_candidate, args, y_error,
+                 error_order, guard_state):
+    """The wrapped controller's decision, unless the step met non-finite equations and cannot
+    shrink further (the step is within round-off of zero, or the steps are fixed): then the
+    step is rejected and the solve stops (`stalled`), keeping the last state it reached."""
+    state, span, _ = guard_state
+    keep, next_t0, next_t1, made_jump, state, result = controller.adapt_step_size(
+        t0, t1, y0, y1_candidate, args, y_error, error_order, state)
+    nonfinite = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(x))
+                                    for x in jax.tree_util.tree_leaves(y1_candidate)]))
+    if can_shrink:
+        eps = jnp.finfo(jnp.result_type(t0)).eps
+        scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), span)
+        stalled = nonfinite & (jnp.abs(t1 - t0) <= 64 * eps * scale)
+    else:
+        stalled = nonfinite
+    # diffrax's own code for "the step size went to zero"; `simulate` replaces it by the cause.
+    result = diffrax.RESULTS.where(stalled, diffrax.RESULTS.dt_min_reached, result)
+    next_t0 = jnp.where(stalled, t0, next_t0)  # time stays with the state that is kept
+    next_t1 = jnp.where(stalled, t1, next_t1)
+    return keep & ~stalled, next_t0, next_t1, made_jump, (state, span, stalled), result
+
+
+class _GuardedAdaptive(diffrax.AbstractAdaptiveStepSizeController):
+    """An adaptive step-size controller that stops the solve where the equations fail."""
+
+    controller: diffrax.AbstractAdaptiveStepSizeController
+
+    @property
+    def rtol(self):
+        return self.controller.rtol
+
+    @property
+    def atol(self):
+        return self.controller.atol
+
+    @property
+    def norm(self):
+        return self.controller.norm
+
+    def wrap(self, direction):
+        return _GuardedAdaptive(self.controller.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return _guard_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
+                        controller_state):
+        return _guard_adapt(self.controller, True, t0, t1, y0, y1_candidate, args, y_error,
+                            error_order, controller_state)
+
+
+class _GuardedFixed(diffrax.AbstractStepSizeController):
+    """A fixed-step controller that stops the solve where the equations fail."""
+
+    controller: diffrax.AbstractStepSizeController
+
+    def wrap(self, direction):
+        return _GuardedFixed(self.controller.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return _guard_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
+                        controller_state):
+        return _guard_adapt(self.controller, False, t0, t1, y0, y1_candidate, args, y_error,
+                            error_order, controller_state)
+
+
+def _diagnose(dynamics, p, factorisation, t, q, u, stalled, direction, span):
+    """Why and where the equations failed, from the last state the solve reached.
+
+    That state is regular or (with fixed steps) the failing one itself. Otherwise the failure
+    lies within round-off of it along the motion: probe explicit-Euler states at steps that
+    double from a few ulps until the equations fail. Runs only when the solve stalled; it
+    costs one evaluation per solve otherwise.
+
+    Returns (the RESULTS code, (t, q, u) where the equations fail).
+    """
+    t, q, u = jax.lax.stop_gradient((t, q, u))
+    rates, accelerations, singular, nonfinite = equations_of_motion(dynamics, t, q, u, p,
+                                                                    factorisation)
+    rates = jnp.where(jnp.isfinite(rates), rates, 0)
+    accelerations = jnp.where(jnp.isfinite(accelerations), accelerations, 0)
+    base = 4 * jnp.finfo(t.dtype).eps * jnp.maximum(jnp.abs(t), span)
+
+    def failed(state):
+        _, _, _, rates, accelerations, singular, nonfinite = state
+        finite = jnp.all(jnp.isfinite(rates)) & jnp.all(jnp.isfinite(accelerations))
+        return singular | nonfinite | ~finite
+
+    def searching(carry):
+        k, state = carry
+        return stalled & ~failed(state) & (k < 64)
+
+    def probe(carry):
+        k, _ = carry
+        h = direction * base * 2.0**k
+        tk, qk, uk = t + h, q + h * rates, u + h * accelerations
+        return k + 1, (tk, qk, uk, *equations_of_motion(dynamics, tk, qk, uk, p, factorisation))
+
+    start = (t, q, u, rates, accelerations, singular, nonfinite)
+    _, state = jax.lax.while_loop(searching, probe, (jnp.array(0), start))
+    t_fail, q_fail, u_fail, _, _, singular, nonfinite = state
+    code = RESULTS.where(singular, RESULTS.singular_mass_matrix,
+                         RESULTS.where(nonfinite, RESULTS.nonfinite_forcing,
+                                       RESULTS.nonfinite_equations))
+    return code, (t_fail, q_fail, u_fail)

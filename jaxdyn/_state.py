@@ -1,8 +1,14 @@
-"""What a state is: time t, coordinates q (n,), speeds u (m,). Validation and broadcasting."""
+"""What a state is: time t, coordinates q (n,), speeds u (m,). Validation, broadcasting, and
+the public methods that take states."""
 
 import functools
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ._errors import reports_state
 
 
 def as_float_array(x, name: str):
@@ -42,13 +48,9 @@ def over_states(signature: str):
     names = ("t", "q", "qd", "qdd")[:num_arrays]
 
     def decorator(method):
-        @functools.wraps(method)
-        def wrapper(self, *args):
-            if len(args) not in (num_arrays, num_arrays + 1):
-                raise TypeError(
-                    f"{method.__name__} takes ({', '.join(names)}, p=None), "
-                    f"got {len(args)} positional arguments."
-                )
+        def broadcast(self, *args, **kwargs):
+            options = {k: v for k, v in kwargs.items() if k != "p"}
+            args = _positional(method.__name__, names, args, kwargs)
             arrays = [as_float_array(a, n) for a, n in zip(args[:num_arrays], names)]
             p = args[num_arrays] if len(args) > num_arrays else None
             for a, n, k in zip(arrays, names, core_ndims):
@@ -57,14 +59,88 @@ def over_states(signature: str):
                         f"{n} must have at least {k} dimension(s), got shape {a.shape}."
                     )
             if all(a.ndim == k for a, k in zip(arrays, core_ndims)):
-                return method(self, *arrays, p)
-            fn = jnp.vectorize(lambda *xs: method(self, *xs, p), signature=signature)
+                return method(self, *arrays, p, **options)
+            fn = jnp.vectorize(lambda *xs: method(self, *xs, p, **options), signature=signature)
             return fn(*arrays)
 
-        return wrapper
+        broadcast.names = names
+        return functools.wraps(method)(broadcast)
 
     return decorator
 
 
+def _positional(name, names, args, kwargs):
+    """The arguments (*arrays, p) of a method on states, with p possibly given by keyword
+    (other keywords are the method's own options)."""
+    if "p" in kwargs and len(args) != len(names):
+        raise TypeError(
+            f"{name} takes ({', '.join(names)}, p=None), got keyword arguments "
+            f"{sorted(kwargs)} after {len(args)} positional arguments."
+        )
+    args = (*args, kwargs["p"]) if "p" in kwargs else args
+    if len(args) not in (len(names), len(names) + 1):
+        raise TypeError(
+            f"{name} takes ({', '.join(names)}, p=None), got {len(args)} positional arguments."
+        )
+    return args
+
+
 def _split(inputs: str) -> list[str]:
     return ["(" + part.strip("(),") + ")" for part in inputs.split(")") if part.strip(",")]
+
+
+def numbers_as_arrays(tree, dtype=None):
+    """Python floats and ints in `tree` as (NumPy) arrays, so that they are traced rather than
+    compiled in: a new parameter value, time or tolerance then reuses the compiled program.
+
+    Floats take `dtype` (that of the state; by default JAX's default float), so that a Python
+    number never changes the precision of a computation. NumPy arrays, unlike `jnp.asarray`,
+    cost no device dispatch here: they are transferred with the call's other inputs.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+
+    def convert(x):
+        if isinstance(x, bool):
+            return x
+        if isinstance(x, float):
+            return np.asarray(x, dtype)
+        if isinstance(x, int):
+            return np.asarray(x, jnp.result_type(int))
+        return x
+
+    return jax.tree_util.tree_map(convert, tree)
+
+
+def state_dtype(*candidates):
+    """The floating dtype of the first array among `candidates` (the state), else the
+    default float."""
+    for x in candidates:
+        dtype = getattr(x, "dtype", None)
+        if dtype is not None and jnp.issubdtype(dtype, jnp.floating):
+            return dtype
+    return jnp.result_type(float)
+
+
+def public_method(signature: str):
+    """A public method on states: `over_states` broadcasting, compiled once per system and
+    argument shapes (and reused on every later call, also when called outside `jax.jit`),
+    with errors that name the failing state (`reports_state`).
+
+    Inside a caller's `jax.jit`, `vmap` or `grad` it is traced once and inlined.
+    """
+    def decorator(method):
+        broadcast = over_states(signature)(method)
+
+        @eqx.filter_jit
+        def compiled(self, *args, **options):
+            return broadcast(self, *args, **options)
+
+        @functools.wraps(method)
+        def wrapper(self, *args, **kwargs):
+            options = {k: v for k, v in kwargs.items() if k != "p"}
+            args = _positional(method.__name__, broadcast.names, args, kwargs)
+            return compiled(self, *numbers_as_arrays(args, state_dtype(*args[1:])), **options)
+
+        return reports_state(wrapper)
+
+    return decorator

@@ -15,7 +15,7 @@ from .._convention import (
     vector,
 )
 from .._dynamics import AbstractDynamics
-from .._state import check_vector, over_states
+from .._state import check_vector, public_method
 
 
 class Lagrangian(AbstractDynamics):
@@ -118,20 +118,24 @@ class Lagrangian(AbstractDynamics):
         t, q, qd = self._check(t, q, qd)
         return self._lagrangian(t, q, qd, p), self._nonconservative(t, q, qd, p)
 
-    def mass_matrix_and_forcing(self, t, q, qd, p=None):
+    def form_equations(self, t, q, qd, p=None):
+        """(M, f) with M = ∂²L/∂q̇² and f = Q − ∂D/∂q̇ + ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t."""
         t, q, qd = self._check(t, q, qd)
-        (_, dL_dq), linear = self._linearised_momentum(t, q, qd, p)
-        n = q.shape[0]
-        # Tangents: row 0 is d/dt along the motion at q̈ = 0, rows 1..n are the unit speeds.
-        t_dot = jnp.concatenate([time_rate(t, self.time_dependent)[None], jnp.zeros(n, t.dtype)])
-        q_dot = jnp.concatenate([qd[None], jnp.zeros((n, n), q.dtype)])
-        qd_dot = jnp.concatenate([jnp.zeros((1, n), qd.dtype), jnp.eye(n, dtype=qd.dtype)])
-        momentum_rates, _ = jax.vmap(linear)(t_dot, q_dot, qd_dot)
-        coupling, mass_matrix = momentum_rates[0], momentum_rates[1:]
-        forcing = self._nonconservative(t, q, qd, p) + dL_dq - coupling
-        return mass_matrix, forcing
 
-    @over_states("(),(n),(n),(n)->(n)")
+        def momentum(t, q, qd):
+            return jax.grad(self._lagrangian, argnums=2)(t, q, qd, p)
+
+        # M: the momentum's Jacobian in the speeds, forward-over-reverse along unit speeds.
+        _, along_speeds = jax.linearize(lambda qd: momentum(t, q, qd), qd)
+        mass_matrix = jax.vmap(along_speeds)(jnp.eye(q.shape[0], dtype=qd.dtype))
+        # The momentum's rate at q̈ = 0, (∂²L/∂q̇∂q) q̇ + ∂²L/∂q̇∂t: one JVP along (ṫ, q̇), in
+        # its own pass so that no work is spent on zero tangents.
+        coupling = jax.jvp(lambda t, q: momentum(t, q, qd), (t, q),
+                           (time_rate(t, self.time_dependent), qd))[1]
+        dL_dq = jax.grad(self._lagrangian, argnums=1)(t, q, qd, p)
+        return mass_matrix, self._nonconservative(t, q, qd, p) + dL_dq - coupling
+
+    @public_method("(),(n),(n),(n)->(n)")
     def residual(self, t, q, qd, qdd, p=None):
         """The Euler–Lagrange residual d/dt ∂L/∂q̇ − ∂L/∂q − Q + ∂D/∂q̇ of a given motion.
 
@@ -145,25 +149,25 @@ class Lagrangian(AbstractDynamics):
         momentum_rate, _ = linear(time_rate(t, self.time_dependent), qd, qdd)
         return momentum_rate - dL_dq - self._nonconservative(t, q, qd, p)
 
-    @over_states("(),(n),(n)->()")
+    @public_method("(),(n),(n)->()")
     def kinetic_energy(self, t, q, qd, p=None):
         """T(t, q, q̇)."""
         t, q, qd = self._check(t, q, qd)
         return self._kinetic(t, q, qd, p)
 
-    @over_states("(),(n),(n)->()")
+    @public_method("(),(n),(n)->()")
     def potential_energy(self, t, q, qd, p=None):
         """V(t, q) (q̇ is accepted for a uniform signature and ignored)."""
         t, q, qd = self._check(t, q, qd)
         return self._potential(t, q, p)
 
-    @over_states("(),(n),(n)->()")
+    @public_method("(),(n),(n)->()")
     def lagrangian(self, t, q, qd, p=None):
         """L = T − V."""
         t, q, qd = self._check(t, q, qd)
         return self._lagrangian(t, q, qd, p)
 
-    @over_states("(),(n),(n)->()")
+    @public_method("(),(n),(n)->()")
     def energy(self, t, q, qd, p=None):
         """Mechanical energy E = T + V.
 
@@ -175,7 +179,7 @@ class Lagrangian(AbstractDynamics):
         t, q, qd = self._check(t, q, qd)
         return self._kinetic(t, q, qd, p) + self._potential(t, q, p)
 
-    @over_states("(),(n),(n)->()")
+    @public_method("(),(n),(n)->()")
     def jacobi_integral(self, t, q, qd, p=None):
         """Jacobi's integral h = q̇·∂L/∂q̇ − L (the Hamiltonian in terms of q̇).
 
@@ -187,7 +191,7 @@ class Lagrangian(AbstractDynamics):
         lagrangian, momentum = jax.value_and_grad(self._lagrangian, argnums=2)(t, q, qd, p)
         return jnp.dot(qd, momentum) - lagrangian
 
-    @over_states("(),(n),(n)->(n)")
+    @public_method("(),(n),(n)->(n)")
     def momentum(self, t, q, qd, p=None):
         """Generalized momenta ∂L/∂q̇ (conserved along a cyclic coordinate)."""
         t, q, qd = self._check(t, q, qd)

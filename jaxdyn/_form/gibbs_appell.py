@@ -73,7 +73,8 @@ class GibbsAppell(AbstractDynamics):
         return (self._gibbs(t, q, u, jnp.zeros_like(u), p), self._active_forces(t, q, u, p),
                 self.coordinate_rates(t, q, u, p))
 
-    def mass_matrix_and_forcing(self, t, q, u, p=None):
+    def form_equations(self, t, q, u, p=None):
+        """(M, f) with M = ∂²S/∂u̇² and f = Π − ∂S/∂u̇ at u̇ = 0."""
         t, q, u = self._check(t, q, u, p)
 
         def gibbs(ud):

@@ -48,7 +48,8 @@ class Kane(AbstractDynamics):
         return (system.kinetic_energy(t, q, qd, p), system.potential_energy(t, q, p),
                 system.applied_forces(t, q, qd, p), system.dissipation_function(t, q, qd, p), qd)
 
-    def mass_matrix_and_forcing(self, t, q, u, p=None):
+    def form_equations(self, t, q, u, p=None):
+        """(M, f) with M_rs = Σ m v_r·v_s + ω_r·I ω_s and f = F + F*|u̇=0."""
         q = check_vector(q, "q")
         u = check_vector(u, "u")
         t = jnp.asarray(t, q.dtype)
