@@ -10,8 +10,9 @@ user writes. Every candidate is checked against the hand-written equations befor
 Figures are seconds per evaluation, medians of interleaved rounds (`_timing.py`):
 
 - loop: inside one compiled `fori_loop` (what a solver pays: no dispatch, a new state each
-  iteration). "rhs" is the right-hand side `simulate` integrates (no checks, NaN on failure);
-  "accelerations" is the public method, with its error checks that name the state.
+  iteration). "rhs" is `accelerations(..., throw=False)`, what `simulate` integrates (no
+  checks, NaN where the equations fail); "accel." is `accelerations` with its default check,
+  a branch that raises an error naming the state.
 - vmap: one jitted call on a batch of 1024 states.
 - call: one jitted call on one state (the per-call overhead included).
 - M, f: `mass_matrix_and_forcing` inside the loop, against M and f written by hand.
@@ -27,8 +28,6 @@ import jax
 import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
-
-from jaxdyn._dynamics import equations_of_motion  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 import _sympy_systems  # noqa: E402
@@ -82,13 +81,11 @@ def measure(system, sympy_model):
         error = float(jnp.max(jnp.abs(fn(t, q, qd, p) - reference)) / jnp.max(jnp.abs(reference)))
         assert error < 1e-8, (name, error)
 
-    def rhs(t, q, qd, p):
-        return equations_of_motion(dynamics, t, q, qd, p)[1]
-
     def unchecked(t, q, qd, p):
         return dynamics.accelerations(t, q, qd, p, throw=False)
 
-    candidates = {"hand": system.hand_written, "rhs": unchecked, "accelerations": dynamics.accelerations,
+    candidates = {"hand": system.hand_written, "rhs": unchecked,
+                  "accelerations": dynamics.accelerations,
                   "sympy": sympy_accelerations, "LNN": lnn_recipe(system)}
     iterations = 20000 if system.n <= 5 else 2000
     args = (t, q, qd, p)
@@ -101,8 +98,9 @@ def measure(system, sympy_model):
     equations = {k: v / iterations for k, v in equations.items()}
     batch = (t, qs, qds, p)
     vmapped = interleaved({k: (jax.jit(jax.vmap(candidates[k], in_axes=(None, 0, 0, None))), batch)
-                           for k in ("hand", "accelerations", "sympy", "LNN")}, number=20)
-    call = interleaved({k: (jax.jit(candidates[k]), args) for k in ("hand", "accelerations")},
+                           for k in ("hand", "rhs", "accelerations", "sympy", "LNN")}, number=20)
+    call = interleaved({k: (jax.jit(candidates[k]), args) for k in ("hand", "rhs",
+                                                                    "accelerations")},
                        number=2000)
     compiles = {k: compile_seconds(candidates[k], *args) for k in ("hand", "accelerations")}
     return dict(loop=loop, equations=equations, vmapped=vmapped, call=call, compiles=compiles,
@@ -118,8 +116,8 @@ def main():
             systems.append((chain(n), lambda n=n: _sympy_systems.chain(n)))
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, float64; ratios = jaxdyn / hand")
     header = (f"{'system':17s} {'loop: hand':>11s} {'rhs':>7s} {'accel.':>7s} {'sympy':>7s} "
-              f"{'LNN':>7s} | {'M,f':>6s} | {'vmap: hand':>11s} {'accel.':>7s} {'sympy':>7s} "
-              f"{'LNN':>7s} | {'call: hand':>11s} {'accel.':>7s}")
+              f"{'LNN':>7s} | {'M,f':>6s} | {'vmap: hand':>11s} {'rhs':>7s} {'accel.':>7s} "
+              f"{'sympy':>7s} {'LNN':>7s} | {'call: hand':>11s} {'rhs':>7s} {'accel.':>7s}")
     print(header)
     rows = []
     for system, sympy_model in systems:
@@ -130,9 +128,11 @@ def main():
         print(f"{system.name:17s} {_time(loop['hand']):>11s} {ratio(loop, 'rhs'):6.2f}× "
               f"{ratio(loop, 'accelerations'):6.2f}× {ratio(loop, 'sympy'):6.2f}× "
               f"{ratio(loop, 'LNN'):6.2f}× | {ratio(r['equations'], 'jaxdyn'):5.2f}× | "
-              f"{_time(vm['hand']):>11s} {ratio(vm, 'accelerations'):6.2f}× "
+              f"{_time(vm['hand']):>11s} {ratio(vm, 'rhs'):6.2f}× "
+              f"{ratio(vm, 'accelerations'):6.2f}× "
               f"{ratio(vm, 'sympy'):6.2f}× {ratio(vm, 'LNN'):6.2f}× | "
-              f"{_time(call['hand']):>11s} {ratio(call, 'accelerations'):6.2f}×", flush=True)
+              f"{_time(call['hand']):>11s} {ratio(call, 'rhs'):6.2f}× "
+              f"{ratio(call, 'accelerations'):6.2f}×", flush=True)
     print("\ncompile (first call of a fresh jax.jit of one evaluation) and sympy derivation:")
     for system, r in rows:
         c = r["compiles"]

@@ -1,59 +1,137 @@
-"""Work–precision of the solvers `jaxdyn.simulate` can use, on a chaotic double pendulum.
+"""Work–precision: final-state error against run time for the solvers `jaxdyn.simulate` can use,
+and for SciPy's `solve_ivp` (DOP853) on a NumPy right-hand side, over tolerances 1e-4 … 1e-12.
 
-Run: python benchmarks/bench_work_precision.py
+Run: python benchmarks/bench_work_precision.py      (about 5 minutes; writes
+     benchmarks/work_precision.csv and benchmarks/work_precision.png)
 
-For each solver and tolerance: the final-state error against a Dopri8 reference at
-rtol = atol = 1e-13, the number of steps, and the run time after compilation (median of
-rounds). All runs happen side by side in one process, so their ratios are comparable.
+Systems: a chaotic double pendulum (θ = (1.5, −1.0) from rest) and the elastic pendulum
+(worked example 25.2), both over 10 s. The reference solution is jaxdyn with Dopri8 at
+rtol = atol = 1e-13, cross-checked against SciPy's DOP853 at 1e-13 on the hand-written
+equations; their difference (printed) bounds how far down the errors below mean anything.
+Errors are max |q(t1) − q_ref(t1)|; times are medians of interleaved rounds after compilation,
+each call a whole `simulate` (or `solve_ivp`) as a user makes it.
 """
 
-import statistics
+import csv
+import os
+import sys
 import time
 
 import diffrax
 import jax
 import jax.numpy as jnp
+import numpy as np
+import scipy.integrate
 
 jax.config.update("jax_enable_x64", True)
 
 import jaxdyn  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(__file__))
+from _systems import DOUBLE_PENDULUM, ELASTIC_PENDULUM, as_arrays  # noqa: E402
+from bench_batch import numpy_rhs as double_pendulum_rhs  # noqa: E402
 
-def kinetic(q, qd, p):
-    v1 = p["l1"] * qd[0] * jnp.array([jnp.cos(q[0]), jnp.sin(q[0])])
-    v2 = v1 + p["l2"] * qd[1] * jnp.array([jnp.cos(q[1]), jnp.sin(q[1])])
-    return 0.5 * (p["m1"] * v1 @ v1 + p["m2"] * v2 @ v2)
-
-
-def potential(q, p):
-    y1 = -p["l1"] * jnp.cos(q[0])
-    y2 = y1 - p["l2"] * jnp.cos(q[1])
-    return p["g"] * (p["m1"] * y1 + p["m2"] * y2)
+HERE = os.path.dirname(os.path.abspath(__file__))
+T1 = 10.0
+TOLERANCES = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
+SOLVERS = {"Tsit5": diffrax.Tsit5(), "Dopri5": diffrax.Dopri5(), "Dopri8": diffrax.Dopri8()}
 
 
-def main(t1=10.0, rounds=7):
-    system = jaxdyn.Lagrangian(kinetic, potential)
-    p = {k: jnp.asarray(v) for k, v in dict(l1=1.0, l2=1.0, m1=1.0, m2=1.0, g=9.81).items()}
-    q0, u0 = jnp.array([1.5, -1.0]), jnp.zeros(2)
-    reference = jaxdyn.simulate(system, q0, u0, p, t1=t1, solver=diffrax.Dopri8(),
-                                rtol=1e-13, atol=1e-13, max_steps=10**6).q[-1]
-    print(f"double pendulum, t1 = {t1}, error = max |q(t1) - q_ref(t1)|")
-    print(f"{'solver':8s} {'tol':>7s} {'error':>9s} {'steps':>6s} {'ms':>7s}")
-    for name, solver in [("Tsit5", diffrax.Tsit5()), ("Dopri5", diffrax.Dopri5()),
-                         ("Dopri8", diffrax.Dopri8())]:
-        for tol in (1e-6, 1e-8, 1e-10, 1e-12):
-            def run():
-                return jaxdyn.simulate(system, q0, u0, p, t1=t1, solver=solver, rtol=tol,
-                                       atol=tol, max_steps=10**6)
-            solution = run()  # compile
-            times = []
-            for _ in range(rounds):
-                start = time.perf_counter()
-                jax.block_until_ready(run())
-                times.append(time.perf_counter() - start)
-            error = float(jnp.max(jnp.abs(solution.q[-1] - reference)))
-            print(f"{name:8s} {tol:7.0e} {error:9.2e} {int(solution.num_steps):6d} "
-                  f"{1e3 * statistics.median(times):7.2f}")
+def elastic_rhs(p):
+    m, g, k, l0 = (p[key] for key in ("m", "g", "k", "l0"))
+
+    def rhs(t, y):
+        r, theta, r_dot, theta_dot = y
+        return [r_dot, theta_dot, r * theta_dot**2 + g * np.cos(theta) - k / m * (r - l0),
+                -(2 * r_dot * theta_dot + g * np.sin(theta)) / r]
+
+    return rhs
+
+
+CASES = [
+    ("double pendulum (chaotic)", DOUBLE_PENDULUM, np.array([1.5, -1.0]), double_pendulum_rhs),
+    ("elastic pendulum", ELASTIC_PENDULUM, np.array([1.5, 0.8]), elastic_rhs),
+]
+
+
+def median_seconds(fn, rounds=5):
+    fn()  # compile (and warm up)
+    samples = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        samples.append(time.perf_counter() - start)
+    return float(np.median(samples))
+
+
+def study(name, system, q0, rhs_factory):
+    p = as_arrays(system.params)
+    u0 = np.zeros_like(q0)
+    rhs = rhs_factory(system.params)
+    reference = np.asarray(jaxdyn.simulate(system.dynamics, q0, u0, p, t1=T1, rtol=1e-13,
+                                           atol=1e-13, max_steps=10**6).q[-1])
+    scipy_reference = scipy.integrate.solve_ivp(rhs, (0, T1), [*q0, *u0], method="DOP853",
+                                                rtol=1e-13, atol=1e-13).y[:2, -1]
+    spread = float(np.max(np.abs(reference - scipy_reference)))
+    print(f"\n{name}: reference Dopri8 1e-13 vs SciPy DOP853 1e-13 differ by {spread:.1e}")
+    print(f"{'solver':14s} {'tol':>7s} {'error':>9s} {'steps':>7s} {'ms':>8s}")
+    rows = []
+    for solver_name, solver in SOLVERS.items():
+        for tol in TOLERANCES:
+            def run(solver=solver, tol=tol):
+                return jaxdyn.simulate(system.dynamics, q0, u0, p, t1=T1, solver=solver,
+                                       rtol=tol, atol=tol, max_steps=10**6, save="q")
+            solution = run()
+            seconds = median_seconds(run)
+            error = float(np.max(np.abs(np.asarray(solution.q[-1]) - reference)))
+            rows.append((name, f"jaxdyn {solver_name}", tol, error, int(solution.num_steps),
+                         seconds))
+    for tol in TOLERANCES:
+        def run_scipy(tol=tol):
+            return scipy.integrate.solve_ivp(rhs, (0, T1), [*q0, *u0], method="DOP853",
+                                             rtol=tol, atol=tol)
+        solution = run_scipy()
+        seconds = median_seconds(lambda: run_scipy().y)
+        error = float(np.max(np.abs(solution.y[:2, -1] - reference)))
+        rows.append((name, "SciPy DOP853", tol, error, int(solution.nfev), seconds))
+    for _, solver_name, tol, error, steps, seconds in rows:
+        print(f"{solver_name:14s} {tol:7.0e} {error:9.2e} {steps:7d} {1e3 * seconds:8.2f}")
+    return rows, spread
+
+
+def main():
+    all_rows = []
+    spreads = {}
+    for case in CASES:
+        rows, spread = study(*case)
+        all_rows += rows
+        spreads[case[0]] = spread
+    with open(os.path.join(HERE, "work_precision.csv"), "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["system", "solver", "tolerance", "error", "steps_or_nfev", "seconds"])
+        writer.writerows(all_rows)
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plot")
+        return
+    fig, axes = plt.subplots(1, len(CASES), figsize=(12, 4.5))
+    for ax, (name, *_rest) in zip(axes, CASES):
+        for solver in sorted({r[1] for r in all_rows}):
+            rows = [r for r in all_rows if r[0] == name and r[1] == solver]
+            ax.loglog([r[5] * 1e3 for r in rows], [max(r[3], 1e-16) for r in rows], "o-",
+                      label=solver)
+        ax.axhline(max(spreads[name], 1e-16), color="grey", ls=":", label="reference spread")
+        ax.set_xlabel("run time per solve (ms)")
+        ax.set_ylabel("final-state error")
+        ax.set_title(f"{name}, {T1:.0f} s")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(HERE, "work_precision.png"), dpi=120)
+    print("wrote benchmarks/work_precision.csv and benchmarks/work_precision.png")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """The interface every formulation implements, and the only thing `simulate` knows about."""
 
 import abc
+import functools
 
 import equinox as eqx
 import jax
@@ -11,7 +12,7 @@ from ._custom_types import Coordinates, MassMatrix, Params, RealScalarLike, Spee
 from ._errors import check_static_indexing, error_if
 from ._linalg import NONFINITE_FORCING, SINGULAR_MASS_MATRIX, solve, solve_mass_matrix
 from ._state import public_method
-from ._unroll import Symbol, is_constant, structure, unrolled
+from ._unroll import Symbol, fits, is_constant, structure, unrolled
 
 
 class AbstractDynamics(eqx.Module):
@@ -82,11 +83,19 @@ class AbstractDynamics(eqx.Module):
         inside a compiled loop of your own (this is what `simulate` integrates).
         """
         check_static_indexing(self.user_functions, t, q, u, p)
-        _, accelerations, singular, nonfinite = equations_of_motion(self, t, q, u, p)
+        accelerations = equations_of_motion(self, t, q, u, p)[1]
         if not throw:
             return accelerations
-        return error_if(accelerations, [(nonfinite, NONFINITE_FORCING),
-                                        (singular, SINGULAR_MASS_MATRIX)], (t, q, u))
+        # Materialised once: without the barrier XLA recomputes the whole evaluation inside
+        # the test for NaN (it fuses the producer into both consumers).
+        accelerations = jax.lax.optimization_barrier(accelerations)
+
+        def causes():  # evaluated only where the accelerations are NaN
+            _, _, singular, nonfinite = equations_of_motion(self, t, q, u, p)
+            return [(nonfinite, NONFINITE_FORCING), (singular, SINGULAR_MASS_MATRIX)]
+
+        return error_if(accelerations, causes, (t, q, u),
+                        failed=~jnp.all(jnp.isfinite(accelerations)))
 
 
 @eqx.filter_jit  # traced once per system and shapes; inlined into every caller's program
@@ -97,23 +106,35 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
     rejects the step instead of stopping: `simulate` diagnoses the failure after the solve.
     Small systems are evaluated as straight-line scalar code with the LDLᵀ factorisation
     written out (structural zeros of M fold away, so independent subsystems are solved apart
-    for free); larger ones as array programs, M factored by LAPACK block by block when it is
+    for free); larger ones as array programs, M factored block by block when it is
     block-diagonal. With `factorisation` (of a mass matrix that does not depend on the state,
     see `constant_mass_matrix`) only f is formed.
     """
-    def equations(t, q, u, p, *, small):
-        rates = dynamics.coordinate_rates(t, q, u, p)
-        if factorisation is not None:
-            forcing = dynamics.form_equations(t, q, u, p)[1]
-            nonfinite = ~jnp.all(jnp.isfinite(forcing))
-            accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
-            return rates, accelerations, factorisation.singular, nonfinite
-        mass_matrix, forcing = dynamics.form_equations(t, q, u, p)
-        blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
-        return rates, *solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
+    if factorisation is not None:  # given for systems evaluated as arrays only
+        return _equations(dynamics, t, q, u, p, factorisation=factorisation, small=False)
+    return unrolled(functools.partial(_equations, dynamics, factorisation=None, small=True),
+                    t, q, u, p,
+                    otherwise=functools.partial(_equations, dynamics, factorisation=None,
+                                                small=False))
 
-    return unrolled(lambda *args: equations(*args, small=True), t, q, u, p,
-                    otherwise=lambda *args: equations(*args, small=False))
+
+def evaluated_as_arrays(dynamics, t, q, u, p) -> bool:
+    """Whether `equations_of_motion` evaluates this system as array operations (too large for
+    straight-line code)."""
+    return not fits(functools.partial(_equations, dynamics, factorisation=None, small=True),
+                    t, q, u, p)
+
+
+def _equations(dynamics, t, q, u, p, *, factorisation, small):
+    rates = dynamics.coordinate_rates(t, q, u, p)
+    if factorisation is not None:
+        forcing = dynamics.form_equations(t, q, u, p)[1]
+        nonfinite = ~jnp.all(jnp.isfinite(forcing))
+        accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
+        return rates, accelerations, factorisation.singular, nonfinite
+    mass_matrix, forcing = dynamics.form_equations(t, q, u, p)
+    blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
+    return rates, *solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
 
 
 def _mass_matrix_structure(dynamics, t, q, u, p):

@@ -24,42 +24,50 @@ class _CheckFailed(RuntimeError):
     """Raised on the host by a failed check."""
 
 
-def error_if(x, checks, state=None):
+def error_if(x, checks, state=None, *, failed=None):
     """`x`, or an error if one of `checks` fails.
 
-    `checks`: a sequence of (pred, message) with boolean scalar preds; the first true one is
-    reported. `state`: None, or (t, q, u) to end the message with "It happened at t = …, q =
-    […], u = […]." (under vmap, the state of the first failing batch member). Derivatives pass
-    through `x` unchanged.
+    `checks`: a sequence of (pred, message) with boolean scalar preds, or a function returning
+    one; the first true pred is reported. `failed`: a cheap boolean saying whether any check
+    fails (by default, the checks themselves). Given `failed` and a function, the checks are
+    only evaluated in the branch taken on failure: detecting a failure then costs as little as
+    computing `failed` (say, a NaN in `x`), and finding its cause costs nothing until it
+    happens. `state`: None, or (t, q, u) to end the message with "It happened at t = …, q =
+    […], u = […]." (under vmap, the state of the first failing batch member).
+
+    Values and derivatives of `x` pass through unchanged: the branch sees its inputs through
+    `stop_gradient`, and only a boolean (False) comes back from it.
     """
-    preds = jnp.stack([jnp.asarray(pred) for pred, _ in checks])
-    messages = tuple(message for _, message in checks)
-    state = () if state is None else jax.lax.stop_gradient(tuple(state))
-    return _check(x, preds, state, messages)
+    if not callable(checks):
+        listed = list(checks)
+        checks = lambda: listed  # noqa: E731
+    messages = tuple(message for _, message in checks())
+    if failed is None:
+        failed = jnp.any(_preds(checks))
+    state = () if state is None else tuple(state)
 
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
-def _check(x, preds, state, messages):
     def fail():
-        struct = jax.eval_shape(lambda: x)
+        preds = jax.lax.stop_gradient(_preds(checks))
+        values = jax.lax.stop_gradient(state)
         raise_ = functools.partial(_raise, messages, len(state) > 0)
-        return jax.pure_callback(raise_, struct, x, preds, *state, vmap_method="sequential")
+        return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds, *values,
+                                 vmap_method="sequential")
 
     # `unvmap_any` keeps the `cond` a real branch under vmap: the host is only called when some
     # batch member has failed.
-    return jax.lax.cond(eqxi.unvmap_any(jnp.any(preds)), fail, lambda: x)
+    flag = jax.lax.cond(eqxi.unvmap_any(failed), fail, lambda: jnp.zeros((), jnp.bool_))
+    # Tie x to the check, so that it is not removed as unused: adding 0 (XLA keeps 0·flag).
+    return jax.tree_util.tree_map(lambda a: a + jnp.zeros((), a.dtype) * flag.astype(a.dtype), x)
 
 
-@_check.defjvp
-def _check_jvp(messages, primals, tangents):
-    x, preds, state = primals
-    return _check(x, preds, state, messages), tangents[0]
+def _preds(checks):
+    return jnp.stack([jnp.asarray(pred) for pred, _ in checks()])
 
 
-def _raise(messages, with_state, x, preds, *state):
+def _raise(messages, with_state, preds, *state):
     preds = np.asarray(preds)
     if not preds.any():  # another batch member failed
-        return jax.tree_util.tree_map(np.asarray, x)
+        return np.zeros((), np.bool_)
     message = messages[int(np.argmax(preds))]
     if with_state:
         values = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip("tqu", state))

@@ -5,8 +5,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._dynamics import AbstractDynamics, constant_mass_matrix, equations_of_motion
-from ._linalg import UNROLL_MAX, factorise
+from ._dynamics import (
+    AbstractDynamics,
+    constant_mass_matrix,
+    equations_of_motion,
+    evaluated_as_arrays,
+    mass_matrix_blocks,
+)
+from ._linalg import factorise
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
 from ._solution import RESULTS, Solution
 from ._state import check_vector, numbers_as_arrays, state_dtype
@@ -87,7 +93,14 @@ def simulate(
     equations fail (`RESULTS.singular_mass_matrix`, `nonfinite_forcing`,
     `nonfinite_equations`).
     """
-    numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), state_dtype(q0, u0))
+    dtype = state_dtype(q0, u0)
+    if stepsize_controller is None:  # defaults filled in here, so that they are traced too
+        default = 1e-10 if jnp.finfo(dtype).bits == 64 else 1e-6
+        rtol = default if rtol is None else rtol
+        atol = default if atol is None else atol
+    elif rtol is not None or atol is not None:
+        raise ValueError("Pass rtol/atol or a stepsize_controller, not both.")
+    numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), dtype)
     # Few arguments: binding them is part of the per-call cost.
     save = (save,) if isinstance(save, str) else tuple(save)
     if not save or set(save) - {"q", "u", "qd"}:
@@ -117,11 +130,13 @@ def _simulate(dynamics, q0, u0, numbers, options):
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
     q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
-    # A mass matrix of the parameters alone is factored once, here, not at every step.
+    # A mass matrix of the parameters alone is factored once, here, not at every step (in
+    # straight-line code it folds to a few operations per step anyway).
     factorisation = None
-    if constant_mass_matrix(dynamics, t0, q0, u0, p):
-        factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p),
-                                  unrolled=u0.shape[0] <= UNROLL_MAX)
+    if (evaluated_as_arrays(dynamics, t0, q0, u0, p)
+            and constant_mass_matrix(dynamics, t0, q0, u0, p)):
+        factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p), unrolled=False,
+                                  blocks=mass_matrix_blocks(dynamics, t0, q0, u0, p))
 
     keep_q, keep_u = "q" in save or "qd" in save, "u" in save or "qd" in save
 
@@ -140,12 +155,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
     saveat = diffrax.SaveAt(subs=[requested, diffrax.SubSaveAt(t1=True)], dense=dense,
                             controller_state=True)
     if stepsize_controller is None:
-        default = 1e-10 if jnp.finfo(dtype).bits == 64 else 1e-6
-        stepsize_controller = diffrax.PIDController(
-            rtol=default if rtol is None else rtol, atol=default if atol is None else atol
-        )
-    elif rtol is not None or atol is not None:
-        raise ValueError("Pass rtol/atol or a stepsize_controller, not both.")
+        stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field),
         solver,

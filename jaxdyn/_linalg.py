@@ -33,57 +33,78 @@ UNROLL_MAX = 8
 class Factorisation(eqx.Module):
     """M = L D Lᵀ for a block-diagonal arrangement of M (one block when M is dense).
 
-    `blocks`: the coordinates of each diagonal block (static); per block either the unit
-    lower-triangular L and the reciprocal pivots 1/D written out as scalars (`unrolled`), or a
-    LAPACK Cholesky factor C = L D^½. `singular`: whether some pivot failed.
+    Blocks of equal size are factored together, vectorised over the blocks. `groups`: per
+    block size, the coordinates of each block (static, shape (blocks, size)); `factors`: per
+    group either the unit lower-triangular L and the reciprocal pivots 1/D written out in
+    scalar operations, or a LAPACK Cholesky factor C = L D^½ (blocks above `UNROLL_MAX`).
+    `singular`: whether some pivot failed.
     """
 
-    blocks: tuple[tuple[int, ...], ...] = eqx.field(static=True)
+    groups: tuple[tuple[tuple[int, ...], ...], ...] = eqx.field(static=True)
     factors: tuple
-    unrolled: bool = eqx.field(static=True)
+    written_out: tuple[bool, ...] = eqx.field(static=True)
     singular: jnp.ndarray
 
 
 def factorise(mass_matrix, *, unrolled: bool, blocks=None) -> Factorisation:
-    """Factor M (block by block if `blocks` is given).
+    """Factor M, block by block if `blocks` (lists of coordinates) is given.
 
-    M counts as singular when a pivot D_j is not finite or min D_j ≤ m ε max_j |M_jj|, which
-    also catches matrices that are positive definite only by round-off.
+    With `unrolled` every block is written out in scalar operations (the caller evaluates the
+    program as straight-line code); otherwise blocks up to `UNROLL_MAX` are, larger ones go to
+    LAPACK. M counts as singular when a pivot D_j is not finite or
+    min D_j ≤ m ε max_j |M_jj|, which also catches matrices that are positive definite only
+    by round-off.
     """
     m = mass_matrix.shape[-1]
-    blocks = (tuple(range(m)),) if blocks is None else tuple(tuple(b) for b in blocks)
-    diagonal = jnp.stack([mass_matrix[i, i] for i in range(m)]) if unrolled or m <= UNROLL_MAX \
+    blocks = [tuple(range(m))] if blocks is None else [tuple(b) for b in blocks]
+    sizes = sorted({len(b) for b in blocks})
+    groups = tuple(tuple(b for b in blocks if len(b) == size) for size in sizes)
+    diagonal = jnp.stack([mass_matrix[i, i] for i in range(m)]) if unrolled \
         else jnp.diagonal(mass_matrix)
     threshold = m * jnp.finfo(mass_matrix.dtype).eps * jnp.max(jnp.abs(diagonal))
-    factors, pivots = [], []
-    write_out = unrolled or max(len(b) for b in blocks) <= UNROLL_MAX
-    for block in blocks:
-        sub = mass_matrix[np.ix_(block, block)] if len(blocks) > 1 else mass_matrix
+    factors, written_out, pivots = [], [], []
+    for group in groups:
+        index = np.asarray(group)
+        sub = mass_matrix[None] if _whole(group, m) else \
+            mass_matrix[index[:, :, None], index[:, None, :]]
+        write_out = unrolled or index.shape[1] <= UNROLL_MAX
         if write_out:
-            lower, block_pivots = _ldl(sub)
-            factors.append((lower, 1 / block_pivots))
+            lower, group_pivots = _ldl(sub)
+            factors.append((lower, 1 / group_pivots))
         else:
             cholesky = jnp.linalg.cholesky(sub)
-            block_pivots = jnp.diagonal(cholesky) ** 2
+            group_pivots = jnp.diagonal(cholesky, axis1=-2, axis2=-1) ** 2
             factors.append(cholesky)
-        pivots.append(block_pivots)
-    pivots = jnp.concatenate(pivots)
-    singular = ~jnp.all(pivots > threshold)  # also true for NaN pivots
-    return Factorisation(blocks, tuple(factors), write_out, singular)
+        written_out.append(write_out)
+        pivots.append(group_pivots.reshape(-1))
+    singular = ~jnp.all(jnp.concatenate(pivots) > threshold)  # also true for NaN pivots
+    return Factorisation(groups, tuple(factors), tuple(written_out), singular)
 
 
 def solve(factorisation: Factorisation, forcing):
     """a = M⁻¹ f from the factorisation; NaN where M is singular."""
-    single = len(factorisation.blocks) == 1
-    accelerations = jnp.zeros_like(forcing) if not single else None
-    for block, factor in zip(factorisation.blocks, factorisation.factors):
-        rhs = forcing if single else forcing[np.asarray(block)]
-        if factorisation.unrolled:
+    m = forcing.shape[-1]
+    accelerations = None
+    for group, factor, write_out in zip(factorisation.groups, factorisation.factors,
+                                        factorisation.written_out):
+        index = np.asarray(group)
+        rhs = forcing[None] if _whole(group, m) else forcing[index]
+        if write_out:
             x = _ldl_solve(*factor, rhs)
         else:
-            x = jsl.cho_solve((factor, True), rhs)
-        accelerations = x if single else accelerations.at[np.asarray(block)].set(x)
+            y = jsl.solve_triangular(factor, rhs[..., None], lower=True)
+            x = jsl.solve_triangular(factor, y, lower=True, trans="T")[..., 0]
+        if _whole(group, m):
+            accelerations = x[0]
+        else:
+            if accelerations is None:
+                accelerations = jnp.zeros_like(forcing)
+            accelerations = accelerations.at[index].set(x)
     return jnp.where(factorisation.singular, jnp.nan, accelerations)
+
+
+def _whole(group, m):
+    return len(group) == 1 and group[0] == tuple(range(m))
 
 
 def solve_mass_matrix(mass_matrix, forcing, *, unrolled: bool, blocks=None):
@@ -100,27 +121,30 @@ def solve_mass_matrix(mass_matrix, forcing, *, unrolled: bool, blocks=None):
 
 
 def _ldl(matrix):
-    """M = L D Lᵀ in scalar operations (no square roots). Returns (L as nested lists, D)."""
-    m = matrix.shape[0]
+    """M = L D Lᵀ written out entry by entry (no square roots), vectorised over leading axes.
+    Returns (L as nested lists of entries, D stacked on the last axis)."""
+    m = matrix.shape[-1]
     lower = [[None] * m for _ in range(m)]
     pivots, reciprocals = [], []
     for j in range(m):
-        pivots.append(matrix[j, j] - sum(lower[j][k] ** 2 * pivots[k] for k in range(j)))
+        pivots.append(matrix[..., j, j]
+                      - sum(lower[j][k] ** 2 * pivots[k] for k in range(j)))
         # One reciprocal per pivot, so that XLA does not split the computation at divisions.
         reciprocals.append(1 / pivots[j])
         for i in range(j + 1, m):
             dot = sum(lower[i][k] * lower[j][k] * pivots[k] for k in range(j))
-            lower[i][j] = (matrix[i, j] - dot) * reciprocals[j]
-    return tuple(tuple(row[:i]) for i, row in enumerate(lower)), jnp.stack(pivots)
+            lower[i][j] = (matrix[..., i, j] - dot) * reciprocals[j]
+    return tuple(tuple(row[:i]) for i, row in enumerate(lower)), jnp.stack(pivots, axis=-1)
 
 
 def _ldl_solve(lower, reciprocals, rhs):
-    """x = L⁻ᵀ D⁻¹ L⁻¹ f in scalar operations."""
+    """x = L⁻ᵀ D⁻¹ L⁻¹ f entry by entry, vectorised over leading axes."""
     m = len(lower)
     y = []
     for i in range(m):  # L y = f
-        y.append(rhs[i] - sum(lower[i][k] * y[k] for k in range(i)))
+        y.append(rhs[..., i] - sum(lower[i][k] * y[k] for k in range(i)))
     x = [None] * m
     for i in reversed(range(m)):  # D Lᵀ x = y
-        x[i] = y[i] * reciprocals[i] - sum(lower[k][i] * x[k] for k in range(i + 1, m))
-    return jnp.stack(x)
+        x[i] = (y[i] * reciprocals[..., i]
+                - sum(lower[k][i] * x[k] for k in range(i + 1, m)))
+    return jnp.stack(x, axis=-1)

@@ -34,10 +34,14 @@ import numpy as np
 from jax.extend import core as jex
 
 # Programs whose arrays hold more elements than this in total (summed over every intermediate)
-# are not unrolled: beyond it the single kernel spills registers and XLA compiles slowly, and
-# the array program is as fast (benchmarks/bench_equations.py: a chain of 8 links is
-# about 3700 elements).
+# run as written. Beyond it XLA no longer keeps the scalar program in a few kernels: it splits
+# the graph at every value with many users (an LDLᵀ of 10 × 10 becomes ~70 kernels), and compile
+# time grows; array operations are then as fast (benchmarks/bench_equations.py; a chain of 8
+# rods is about 3700 elements).
 MAX_ELEMENTS = 4000
+# Programs analysed for their structure (`structure`), which emits nothing: Python time alone,
+# about 0.1 s for the equations of a 20-link chain.
+MAX_ANALYSED = 200_000
 
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
     "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
@@ -82,7 +86,7 @@ def _emit(primitive, xs, dtypes, params):
     return primitive.bind(*[_lift(x, d) for x, d in zip(xs, dtypes)], **params)
 
 
-def structure(fn, *args, tags, max_elements: int = 20 * MAX_ELEMENTS):
+def structure(fn, *args, tags, max_elements: int | None = None):
     """What is known at trace time about each element of ``fn(*args)``, without evaluating
     it: a NumPy scalar where the element folds to a constant (a structural zero of a mass
     matrix, say), else a `Symbol` naming the inputs it depends on.
@@ -96,7 +100,7 @@ def structure(fn, *args, tags, max_elements: int = 20 * MAX_ELEMENTS):
     )(*leaves)
     leaf_tags = [tag for arg, tag in zip(args, tags) for _ in jax.tree_util.tree_leaves(arg)]
     jaxpr = _dead_code_eliminated(closed.jaxpr)
-    if _size(jaxpr) > max_elements:
+    if _size(jaxpr) > (MAX_ANALYSED if max_elements is None else max_elements):
         return None
     inputs = [_symbols_like(leaf, tag) for leaf, tag in zip(leaves, leaf_tags)]
     consts = [c if _is_concrete(c) else _symbols_like(c, "const") for c in closed.consts]
@@ -112,7 +116,7 @@ def _symbols_like(x, tag):
     return _filled(np.shape(x), Symbol(frozenset([tag])))
 
 
-def unrolled(fn, *args, otherwise=None, max_elements: int = MAX_ELEMENTS):
+def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
     """``fn(*args)`` evaluated as straight-line scalar code, or ``otherwise(*args)`` (by
     default ``fn(*args)`` as written) when the program is too large.
 
@@ -123,7 +127,7 @@ def unrolled(fn, *args, otherwise=None, max_elements: int = MAX_ELEMENTS):
         lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)), return_shape=True
     )(*leaves)
     try:
-        outs = evaluate(closed, leaves, max_elements)
+        outs = evaluate(closed, leaves, MAX_ELEMENTS if max_elements is None else max_elements)
     except _Fallback:
         return (fn if otherwise is None else otherwise)(*args)
     out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
@@ -131,7 +135,16 @@ def unrolled(fn, *args, otherwise=None, max_elements: int = MAX_ELEMENTS):
     return jax.tree_util.tree_unflatten(out_treedef, arrays)
 
 
-def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int = MAX_ELEMENTS):
+def fits(fn, *args, max_elements: int | None = None) -> bool:
+    """Whether `unrolled(fn, *args)` would evaluate ``fn`` as straight-line scalar code."""
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    closed = jax.make_jaxpr(lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)))(*leaves)
+    jaxpr = _dead_code_eliminated(closed.jaxpr)
+    limit = MAX_ELEMENTS if max_elements is None else max_elements
+    return not jaxpr.effects and _size(jaxpr) <= limit
+
+
+def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int):
     """Evaluate a closed jaxpr element by element; returns object arrays of scalars.
 
     Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value.

@@ -1,0 +1,230 @@
+"""How the equations are evaluated: compile once, jit bound methods, branch-free evaluation,
+work a system does not need skipped — each checked to leave the results unchanged against
+independent oracles (closed forms, NumPy linear algebra)."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+
+import jaxdyn
+import jaxdyn._unroll
+from jaxdyn._dynamics import constant_mass_matrix, evaluated_as_arrays, mass_matrix_blocks
+from jaxdyn.rotations import planar_rotation
+
+from helpers import DOUBLE_PENDULUM, PENDULUM, assert_close
+
+DP = DOUBLE_PENDULUM
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiled once, reused; bound methods can be jitted
+# ---------------------------------------------------------------------------------------------
+
+
+def _counting_pendulum():
+    """A pendulum whose kinetic energy counts how often it is traced."""
+    traces = []
+
+    def kinetic(q, qd, p):
+        traces.append(None)
+        return 0.5 * p["m"] * p["l"] ** 2 * qd[0] ** 2
+
+    def potential(q, p):
+        return -p["m"] * 9.81 * p["l"] * jnp.cos(q[0])
+
+    return jaxdyn.Lagrangian(kinetic, potential), traces
+
+
+def test_direct_calls_compile_once_per_shape():
+    pendulum, traces = _counting_pendulum()
+    p = {"m": 1.0, "l": 0.5}
+    first = pendulum.accelerations(0.0, np.array([0.3]), np.array([0.0]), p)
+    count = len(traces)
+    assert count > 0
+    # New state, new time, new Python-float parameter values: the compiled method is reused.
+    second = pendulum.accelerations(1.0, np.array([0.7]), np.array([2.0]), {"m": 3.0, "l": 0.9})
+    assert len(traces) == count
+    assert_close(first, [-9.81 / 0.5 * np.sin(0.3)], rtol=1e-14)
+    assert_close(second, [-9.81 / 0.9 * np.sin(0.7)], rtol=1e-14)
+
+
+def test_simulate_does_not_recompile_for_new_numbers():
+    pendulum, traces = _counting_pendulum()
+    q0, u0 = np.array([0.3]), np.array([0.0])
+    jaxdyn.simulate(pendulum, q0, u0, {"m": 1.0, "l": 0.5}, t1=1.0, ts=np.linspace(0, 1, 5),
+                    rtol=1e-8)
+    count = len(traces)
+    sol = jaxdyn.simulate(pendulum, q0, u0, {"m": 2.0, "l": 0.7}, t1=2.0,
+                          ts=np.linspace(0, 2, 5), rtol=1e-9, atol=1e-9)
+    assert len(traces) == count
+    # The new values were used: SciPy on θ̈ = −(g/l) sin θ with l = 0.7.
+    reference = scipy.integrate.solve_ivp(
+        lambda t, y: [y[1], -9.81 / 0.7 * np.sin(y[0])], (0.0, 2.0), [0.3, 0.0],
+        t_eval=np.linspace(0, 2, 5), rtol=1e-12, atol=1e-12)
+    assert_close(sol.q[:, 0], reference.y[0], rtol=0, atol=1e-7)
+
+
+def _sleigh():
+    def orientation(q, p):
+        return planar_rotation(q[2])
+
+    def centre(q, p):
+        return jnp.array([q[0], q[1], 0.0]) + orientation(q, p) @ jnp.array([p["a"], 0.0, 0.0])
+
+    def kinematic_map(q, p):
+        c, s = jnp.cos(q[2]), jnp.sin(q[2])
+        return jnp.array([[c, 0.0], [s, 0.0], [0.0, 1.0]])
+
+    body = jaxdyn.RigidBody(2.0, jnp.diag(jnp.array([0.1, 0.1, 0.3])), centre, orientation)
+    system = jaxdyn.MultibodySystem([body], gravity=jnp.array([0.0, 0.0, -9.81]))
+    return system, kinematic_map
+
+
+@pytest.mark.parametrize("formulation", ["Lagrange", "Gibbs-Appell", "Kane"])
+def test_jit_of_a_bound_method_for_every_formulation(formulation):
+    system, kinematic_map = _sleigh()
+    dynamics = {"Lagrange": None, "Gibbs-Appell": system.gibbs_appell(kinematic_map),
+                "Kane": jaxdyn.Kane(system, kinematic_map)}[formulation]
+    p = {"a": 0.3}
+    if dynamics is None:  # holonomic version: the free planar body in (x, y, θ)
+        dynamics = system.lagrangian()
+        q, u = np.array([0.1, 0.2, 0.3]), np.array([1.0, -0.5, 0.4])
+    else:
+        q, u = np.array([0.1, 0.2, 0.3]), np.array([1.0, 0.5])
+    jitted = jax.jit(dynamics.accelerations)
+    assert_close(jitted(0.0, q, u, p), dynamics.accelerations(0.0, q, u, p), rtol=1e-14)
+    assert_close(jax.jit(dynamics.mass_matrix)(0.0, q, u, p), dynamics.mass_matrix(0.0, q, u, p),
+                 rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------------
+# Branch-free evaluation: NaN where the equations fail, with throw=False
+# ---------------------------------------------------------------------------------------------
+
+
+def test_accelerations_without_check_return_nan_where_the_mass_matrix_is_singular():
+    pendulum = PENDULUM.dynamics
+    singular = {**PENDULUM.params, "m": 0.0}
+    a = pendulum.accelerations(0.0, np.array([0.3]), np.array([0.0]), singular, throw=False)
+    assert np.isnan(np.asarray(a)).all()
+    with pytest.raises(RuntimeError, match="The mass matrix is singular"):
+        pendulum.accelerations(0.0, np.array([0.3]), np.array([0.0]), singular)
+    regular = pendulum.accelerations(0.0, np.array([0.3]), np.array([0.0]), PENDULUM.params,
+                                     throw=False)
+    assert_close(regular, PENDULUM.accelerations(np.array([0.3]), None, PENDULUM.params),
+                 rtol=1e-14)
+
+
+def test_a_failed_solve_reports_its_cause_without_throwing():
+    polar = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * (qd[0] ** 2 + q[0] ** 2 * qd[1] ** 2))
+    sol = jaxdyn.simulate(polar, np.array([1.0, 0.0]), np.array([-1.0, 0.0]), None, t1=2.0,
+                          dt0=0.25, stepsize_controller=diffrax.ConstantStepSize(), throw=False)
+    assert sol.result == jaxdyn.RESULTS.singular_mass_matrix
+    # Dopri8's last stage of the step from 0.75 to 1 meets r = 0: that step is not accepted.
+    assert int(sol.num_accepted_steps) == 3
+
+
+def test_an_adaptive_solve_stops_where_the_equations_fail_and_not_at_max_steps():
+    """q1 = t exactly and M22 = 1 − q1: the solver creeps up to t = 1 with ever smaller steps
+    and stops there (a few hundred steps), instead of spending its whole step budget."""
+    system = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd[0] ** 2 + 0.5 * (1 - q[0]) * qd[1] ** 2)
+    sol = jaxdyn.simulate(system, np.zeros(2), np.array([1.0, 0.0]), None, t1=3.0, throw=False)
+    assert sol.result == jaxdyn.RESULTS.singular_mass_matrix
+    assert int(sol.num_steps) < 1000
+
+
+# ---------------------------------------------------------------------------------------------
+# Work a system does not need is skipped; results unchanged
+# ---------------------------------------------------------------------------------------------
+
+
+def _oscillators(n):
+    """n unit masses in a row joined by unit springs, Cartesian coordinates: M = I."""
+    def kinetic(q, qd, p):
+        return 0.5 * p["m"] * jnp.sum(qd**2)
+
+    def potential(q, p):
+        stretch = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
+        return 0.5 * p["k"] * jnp.sum(stretch**2)
+
+    return jaxdyn.Lagrangian(kinetic, potential)
+
+
+def _normal_modes(n, q0, t, m, k):
+    """Exact solution of the fixed–fixed spring chain from rest: normal modes."""
+    stiffness = k * (2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1))
+    w2, modes = np.linalg.eigh(stiffness / m)
+    amplitudes = modes.T @ q0
+    return np.stack([modes @ (amplitudes * np.cos(np.sqrt(w2) * ti)) for ti in t])
+
+
+@pytest.mark.parametrize("straight_line", [True, False])
+def test_a_constant_mass_matrix_is_detected_and_factored_once(straight_line, monkeypatch):
+    """Evaluated as arrays (the budget for straight-line code set to zero), M = m I is
+    factored once before the solve; either way the motion is the exact normal-mode one."""
+    n, p = 6, {"m": 1.3, "k": 7.0}
+    system = _oscillators(n)
+    q0 = np.random.default_rng(1).normal(size=n)
+    assert constant_mass_matrix(system, 0.0, q0, np.zeros(n), p)
+    assert not constant_mass_matrix(DP.dynamics, 0.0, np.ones(2), np.ones(2), DP.params)
+    if not straight_line:
+        monkeypatch.setattr(jaxdyn._unroll, "MAX_ELEMENTS", 0)
+        assert evaluated_as_arrays(system, 0.0, q0, np.zeros(n), p)
+    ts = np.linspace(0.0, 5.0, 11)
+    sol = jaxdyn.simulate(system, q0, np.zeros(n), p, t1=5.0, ts=ts)
+    assert_close(sol.q, _normal_modes(n, q0, ts, p["m"], p["k"]), rtol=0, atol=1e-8)
+
+
+def test_independent_subsystems_are_solved_block_by_block(monkeypatch):
+    """Eight uncoupled double pendulums in one system. Evaluated as arrays (the budget for
+    straight-line code set to zero), M is found to be eight 2×2 blocks; the accelerations
+    equal those of the single double pendulum's closed form."""
+    count = 8
+
+    def kinetic(q, qd, p):
+        return sum(DP.dynamics.kinetic(q[2 * i: 2 * i + 2], qd[2 * i: 2 * i + 2], p)
+                   for i in range(count))
+
+    def potential(q, p):
+        return sum(DP.dynamics.potential(q[2 * i: 2 * i + 2], p) for i in range(count))
+
+    system = jaxdyn.Lagrangian(kinetic, potential)
+    rng = np.random.default_rng(2)
+    q, qd = rng.uniform(-2, 2, 2 * count), rng.uniform(-2, 2, 2 * count)
+    blocks = mass_matrix_blocks(system, 0.0, q, qd, DP.params)
+    assert blocks == [(2 * i, 2 * i + 1) for i in range(count)]
+    monkeypatch.setattr(jaxdyn._unroll, "MAX_ELEMENTS", 0)
+    accelerations = system.accelerations(0.0, q, qd, DP.params)
+    expected = np.concatenate([DP.accelerations(q[2 * i: 2 * i + 2], qd[2 * i: 2 * i + 2],
+                                                DP.params) for i in range(count)])
+    assert_close(accelerations, expected, rtol=1e-10)
+
+
+def test_kinetic_energy_independent_of_q_and_no_potential():
+    """T = ½ Σ m_i q̇_i² with forces only: no velocity coupling, nothing from V; q̈ = Q/m."""
+    system = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * jnp.sum(p["m"] * qd**2),
+                               forces=lambda q, qd, p: -p["c"] * qd)
+    p = {"m": jnp.array([1.0, 2.0, 4.0]), "c": 0.5}
+    qd = np.array([1.0, -2.0, 3.0])
+    assert_close(system.accelerations(0.0, np.ones(3), qd, p), -0.5 * qd / np.array([1, 2, 4.]),
+                 rtol=1e-15)
+
+
+def test_only_the_outputs_asked_for_are_saved():
+    ts = np.linspace(0.0, 1.0, 5)
+    args = (DP.dynamics, np.array([0.4, 0.2]), np.zeros(2), DP.params)
+    full = jaxdyn.simulate(*args, t1=1.0, ts=ts)
+    only_q = jaxdyn.simulate(*args, t1=1.0, ts=ts, save="q")
+    assert only_q.u is None and only_q.qd is None
+    assert_close(only_q.q, full.q, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="save must name some of 'q', 'u', 'qd'"):
+        jaxdyn.simulate(*args, t1=1.0, save=("q", "energy"))
+
+
+def test_python_numbers_keep_the_precision_of_the_state():
+    q0, u0 = np.array([0.3], np.float32), np.array([0.0], np.float32)
+    sol = jaxdyn.simulate(PENDULUM.dynamics, q0, u0, {"m": 1.0, "l": 0.5, "g": 9.81}, t1=0.5)
+    assert sol.q.dtype == np.float32 and sol.ts.dtype == np.float32
