@@ -1,5 +1,7 @@
-"""Cost of `accelerations` for each formulation on a planar N-link chain, against the
-hand-written equations of the same chain, measured side by side in one process.
+"""Cost of `accelerations` for each formulation on a planar N-link chain described body by
+body (`MultibodySystem`), against the hand-written equations of the same chain, measured side
+by side in one process: per evaluation inside a compiled loop (`throw=False`, what a solver
+pays) and compile time (first call, caches cleared).
 
 Run: python benchmarks/bench_formulations.py
 
@@ -25,7 +27,7 @@ import jaxdyn  # noqa: E402
 from jaxdyn.rotations import planar_rotation  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _timing import timed  # noqa: E402
+from _timing import compile_seconds, in_loop, interleaved  # noqa: E402
 
 M_ROD, L_ROD, G = 1.0, 0.5, 9.81
 
@@ -64,9 +66,10 @@ def hand_written(n):
 
 def main(sizes=(2, 5, 10, 20)):
     t = jnp.asarray(0.0)
-    print(f"jax {jax.__version__}, {jax.devices()[0].platform}, float64, one state per call")
-    print(f"{'N':>3s} {'hand-written':>13s} " + " ".join(
-        f"{name:>20s}" for name in ("Lagrange", "Gibbs–Appell", "Kane")))
+    names = ("Lagrange", "Gibbs–Appell", "Kane")
+    print(f"jax {jax.__version__}, {jax.devices()[0].platform}, float64, per evaluation inside "
+          "a compiled loop")
+    print(f"{'N':>3s} {'hand-written':>13s} " + " ".join(f"{name:>20s}" for name in names))
     for n in sizes:
         system = chain_system(n)
         key_q, key_u = jax.random.split(jax.random.PRNGKey(n))
@@ -78,15 +81,22 @@ def main(sizes=(2, 5, 10, 20)):
             ours = dynamics.accelerations(t, q, qd, None)
             error = float(jnp.max(jnp.abs(ours - reference)) / jnp.max(jnp.abs(reference)))
             assert error < 1e-9, (type(dynamics).__name__, n, error)
-        base_compile, base = timed(baseline, t, q, qd, None)
-        runs, compiles = [], []
-        for dynamics in formulations:
-            compile_seconds, mine = timed(dynamics.accelerations, t, q, qd, None)
-            runs.append(f"{1e6 * mine:9.1f} µs ({mine / base:5.2f}×)")
-            compiles.append(f"{compile_seconds:8.2f} s")
-        print(f"{n:3d} {1e6 * base:10.1f} µs " + " ".join(f"{c:>20s}" for c in runs))
-        print(f"{'':3s} {base_compile:11.2f} s " + " ".join(f"{c:>20s}" for c in compiles)
-              + "   (compile)")
+
+        def unchecked(dynamics):
+            return lambda t, q, qd, p: dynamics.accelerations(t, q, qd, p, throw=False)
+
+        candidates = {"hand": baseline, **{name: unchecked(d)
+                                           for name, d in zip(names, formulations)}}
+        compiles = {k: compile_seconds(fn, t, q, qd, None) for k, fn in candidates.items()}
+        iterations = 2000 if n <= 5 else 200
+        times = interleaved({k: (in_loop(fn, iterations), (t, q, qd, None))
+                             for k, fn in candidates.items()}, number=1, rounds=5)
+        base = times["hand"] / iterations
+        cells = [f"{1e6 * times[k] / iterations:8.1f} µs ({times[k] / times['hand']:5.1f}×)"
+                 for k in names]
+        print(f"{n:3d} {1e6 * base:10.2f} µs " + " ".join(f"{c:>20s}" for c in cells))
+        print(f"{'':3s} {compiles['hand']:11.2f} s " + " ".join(
+            f"{compiles[k]:18.2f} s" for k in names) + "   (compile)", flush=True)
 
 
 if __name__ == "__main__":

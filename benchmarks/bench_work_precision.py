@@ -74,7 +74,8 @@ def study(name, system, q0, rhs_factory):
                                                 rtol=1e-13, atol=1e-13).y[:2, -1]
     spread = float(np.max(np.abs(reference - scipy_reference)))
     print(f"\n{name}: reference Dopri8 1e-13 vs SciPy DOP853 1e-13 differ by {spread:.1e}")
-    print(f"{'solver':14s} {'tol':>7s} {'error':>9s} {'steps':>7s} {'ms':>8s}")
+    print(f"{'solver':14s} {'tol':>7s} {'error':>9s} {'steps*':>7s} {'ms':>8s}"
+          "   (*for SciPy: right-hand-side evaluations)")
     rows = []
     for solver_name, solver in SOLVERS.items():
         for tol in TOLERANCES:
