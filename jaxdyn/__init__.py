@@ -3,7 +3,9 @@
 import importlib.metadata
 
 from . import rotations as rotations
+from ._system.base import AbstractMultibody as AbstractMultibody
 from ._dynamics import AbstractDynamics as AbstractDynamics
+from ._form.articulated import ArticulatedBody as ArticulatedBody
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane
@@ -11,7 +13,18 @@ from ._integrate import simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._system.bodies import Particle as Particle, RigidBody as RigidBody
 from ._system.loads import BodyTorque as BodyTorque, PointForce as PointForce
+from ._system.joints import (
+    AbstractJoint as AbstractJoint,
+    Fixed as Fixed,
+    Free as Free,
+    Planar as Planar,
+    Prismatic as Prismatic,
+    Revolute as Revolute,
+    Spherical as Spherical,
+)
 from ._system.multibody import MultibodySystem as MultibodySystem
+from ._system.tree import Link as Link, LinkLoad as LinkLoad, RigidBodyTree as RigidBodyTree
+from ._system.urdf import from_urdf as from_urdf
 
 try:
     __version__ = importlib.metadata.version("jaxdyn")

@@ -25,11 +25,12 @@ class AbstractDynamics(eqx.Module):
     coordinates, for nonholonomic systems).
 
     Subclasses implement `coordinate_rates`, `form_equations` (their own way of forming M and
-    f) and `user_functions`. Everything else follows here: the accelerations by an LDLᵀ
-    solve, small systems evaluated as straight-line scalar code (`jaxdyn._unroll`), and the
-    public methods, which take ``(t, q, u, p=None)``, accept stacked states (leading axes
-    broadcast), compile once per system and shape, and can be passed to `jax.jit` as bound
-    methods.
+    f), `form_accelerations` (usually `accelerations_from_equations`: an LDLᵀ solve of M u̇ =
+    f; the articulated-body algorithm has its own), `energy_terms` and `user_functions`.
+    Everything else follows here: small systems evaluated as straight-line scalar code
+    (`jaxdyn._unroll`), and the public methods, which take ``(t, q, u, p=None)``, accept
+    stacked states (leading axes broadcast), compile once per system and shape, and can be
+    passed to `jax.jit` as bound methods.
     """
 
     @abc.abstractmethod
@@ -43,6 +44,15 @@ class AbstractDynamics(eqx.Module):
         self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
     ) -> tuple[MassMatrix, Speeds]:
         """(M, f) of M u̇ = f for one state, as this formulation forms them."""
+
+    @abc.abstractmethod
+    def form_accelerations(self, t, q, u, p=None, *, small: bool):
+        """(u̇, singular, nonfinite) for one state, u̇ NaN where the equations fail; `small`:
+        the program will run as straight-line scalar code (see `equations_of_motion`)."""
+
+    @abc.abstractmethod
+    def energy_terms(self, t, q, u, p=None):
+        """(T, V), the kinetic and potential energy, for the diagnostics."""
 
     @abc.abstractmethod
     def user_functions(self, t, q, u, p=None):
@@ -86,9 +96,6 @@ class AbstractDynamics(eqx.Module):
         accelerations = equations_of_motion(self, t, q, u, p)[1]
         if not throw:
             return accelerations
-        # Materialised once: without the barrier XLA recomputes the whole evaluation inside
-        # the test for NaN (it fuses the producer into both consumers).
-        accelerations = jax.lax.optimization_barrier(accelerations)
 
         def causes():  # evaluated only where the accelerations are NaN
             _, _, singular, nonfinite = equations_of_motion(self, t, q, u, p)
@@ -96,6 +103,28 @@ class AbstractDynamics(eqx.Module):
 
         return error_if(accelerations, causes, (t, q, u),
                         failed=~jnp.all(jnp.isfinite(accelerations)))
+
+    @public_method("(),(n),(m)->()")
+    def kinetic_energy(self, t, q, u, p=None):
+        """T."""
+        return self.energy_terms(t, q, u, p)[0]
+
+    @public_method("(),(n),(m)->()")
+    def potential_energy(self, t, q, u, p=None):
+        """V (u is accepted for a uniform signature and ignored)."""
+        return self.energy_terms(t, q, u, p)[1]
+
+    @public_method("(),(n),(m)->()")
+    def energy(self, t, q, u, p=None):
+        """Mechanical energy E = T + V: conserved by a conservative, scleronomic system."""
+        kinetic, potential = self.energy_terms(t, q, u, p)
+        return kinetic + potential
+
+    @public_method("(),(n),(m)->(m)")
+    def momentum(self, t, q, u, p=None):
+        """The generalized momenta ∂T/∂u conjugate to the speeds (∂L/∂q̇ for Lagrange's
+        equations): conserved along a cyclic coordinate."""
+        return jax.grad(lambda u: self.energy_terms(t, q, u, p)[0])(u)
 
 
 @eqx.filter_jit  # traced once per system and shapes; inlined into every caller's program
@@ -132,9 +161,15 @@ def _equations(dynamics, t, q, u, p, *, factorisation, small):
         nonfinite = ~jnp.all(jnp.isfinite(forcing))
         accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
         return rates, accelerations, factorisation.singular, nonfinite
+    return rates, *dynamics.form_accelerations(t, q, u, p, small=small)
+
+
+def accelerations_from_equations(dynamics, t, q, u, p, *, small):
+    """(u̇, singular, nonfinite) by an LDLᵀ solve of the formulation's M u̇ = f: written out in
+    straight-line code when `small`, else block by block (`mass_matrix_blocks`)."""
     mass_matrix, forcing = dynamics.form_equations(t, q, u, p)
     blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
-    return rates, *solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
+    return solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
 
 
 def _mass_matrix_structure(dynamics, t, q, u, p):

@@ -69,7 +69,7 @@ def factorise(mass_matrix, *, unrolled: bool, blocks=None) -> Factorisation:
             mass_matrix[index[:, :, None], index[:, None, :]]
         write_out = unrolled or index.shape[1] <= UNROLL_MAX
         if write_out:
-            lower, group_pivots = _ldl(sub)
+            lower, group_pivots = ldl(sub)
             factors.append((lower, 1 / group_pivots))
         else:
             cholesky = jnp.linalg.cholesky(sub)
@@ -90,7 +90,7 @@ def solve(factorisation: Factorisation, forcing):
         index = np.asarray(group)
         rhs = forcing[None] if _whole(group, m) else forcing[index]
         if write_out:
-            x = _ldl_solve(*factor, rhs)
+            x = ldl_solve(*factor, rhs)
         else:
             y = jsl.solve_triangular(factor, rhs[..., None], lower=True)
             x = jsl.solve_triangular(factor, y, lower=True, trans="T")[..., 0]
@@ -120,7 +120,7 @@ def solve_mass_matrix(mass_matrix, forcing, *, unrolled: bool, blocks=None):
     return jnp.where(nonfinite, jnp.nan, accelerations), factorisation.singular, nonfinite
 
 
-def _ldl(matrix):
+def ldl(matrix):
     """M = L D Lᵀ written out entry by entry (no square roots), vectorised over leading axes.
     Returns (L as nested lists of entries, D stacked on the last axis)."""
     m = matrix.shape[-1]
@@ -137,7 +137,7 @@ def _ldl(matrix):
     return tuple(tuple(row[:i]) for i, row in enumerate(lower)), jnp.stack(pivots, axis=-1)
 
 
-def _ldl_solve(lower, reciprocals, rhs):
+def ldl_solve(lower, reciprocals, rhs):
     """x = L⁻ᵀ D⁻¹ L⁻¹ f entry by entry, vectorised over leading axes."""
     m = len(lower)
     y = []

@@ -58,11 +58,11 @@ def formulations(name, with_map=True):
     ref = SYSTEMS[name]
     k = ref.kinematic_map if with_map else None
     out = {
-        "gibbs_appell": ref.system.gibbs_appell(k),
+        "gibbs_appell": jaxdyn.GibbsAppell.from_system(ref.system, k),
         "kane": jaxdyn.Kane(ref.system, k),
     }
     if k is None and ref.independent_coordinates:
-        out["lagrangian"] = ref.system.lagrangian()
+        out["lagrangian"] = jaxdyn.Lagrangian.from_system(ref.system)
     return out
 
 
@@ -651,12 +651,12 @@ def _loaded_chains():
         tip = p["F"] * p["l"] * jnp.cos(q)
         return tip + motor(q, qd, p) * jnp.array([-1.0, 1.0, 0.0])
 
-    return loaded, _chain_with(forces=by_hand).lagrangian()
+    return loaded, jaxdyn.Lagrangian.from_system(_chain_with(forces=by_hand))
 
 
 @functools.lru_cache(maxsize=None)
 def _three(system):
-    return {"lagrangian": system.lagrangian(), "gibbs_appell": system.gibbs_appell(),
+    return {"lagrangian": jaxdyn.Lagrangian.from_system(system), "gibbs_appell": jaxdyn.GibbsAppell.from_system(system),
             "kane": jaxdyn.Kane(system)}
 
 
@@ -692,7 +692,7 @@ def test_loads_on_chaplygin_sleigh(i):
     m, a, inertia, g_t = p["m"], p["a"], p["I"], p["g_t"]
     expected = [(p["F"] - m * g_t * np.sin(th)) / m + a * w**2,
                 (p["tau"] - m * g_t * a * np.cos(th) - m * a * v * w) / (inertia + m * a**2)]
-    for dyn in (system.gibbs_appell(ref.kinematic_map), jaxdyn.Kane(system, ref.kinematic_map)):
+    for dyn in (jaxdyn.GibbsAppell.from_system(system, ref.kinematic_map), jaxdyn.Kane(system, ref.kinematic_map)):
         assert_rel(_accelerations(dyn, q, u, p), expected, what=type(dyn).__name__)
 
 
@@ -714,7 +714,7 @@ def _joint_damping_by_hand(q, qd, p):
 @functools.lru_cache(maxsize=None)
 def _damped_chains():
     return (_three(_chain_with(dissipation=_joint_damping)),
-            _chain_with(forces=_joint_damping_by_hand).lagrangian())
+            jaxdyn.Lagrangian.from_system(_chain_with(forces=_joint_damping_by_hand)))
 
 
 @pytest.mark.parametrize("i", range(3))
@@ -802,7 +802,7 @@ def test_error_kinematic_map_shape():
     ref = SYSTEMS["chaplygin_sleigh"]
     q, u = ref.states[0]
     wrong = lambda q, p: jnp.zeros((3, 3))
-    for dyn in (ref.system.gibbs_appell(wrong), jaxdyn.Kane(ref.system, wrong)):
+    for dyn in (jaxdyn.GibbsAppell.from_system(ref.system, wrong), jaxdyn.Kane(ref.system, wrong)):
         with pytest.raises(ValueError, match=r"kinematic_map must return K of shape \(n, m\)"):
             dyn.accelerations(0.0, q, u, ref.params)
 
@@ -810,8 +810,8 @@ def test_error_kinematic_map_shape():
 def test_error_speeds_without_map():
     ref = SYSTEMS["chaplygin_sleigh"]
     q, u = ref.states[0]  # 3 coordinates, 2 speeds, and no map given
-    for dyn in (ref.system.gibbs_appell(), jaxdyn.Kane(ref.system)):
+    for dyn in (jaxdyn.GibbsAppell.from_system(ref.system), jaxdyn.Kane(ref.system)):
         with pytest.raises(ValueError, match="Without a kinematic_map the speeds are q̇"):
             dyn.accelerations(0.0, q, u, ref.params)
     with pytest.raises(ValueError, match="qd must have shape"):
-        ref.system.lagrangian().accelerations(0.0, q, u, ref.params)
+        jaxdyn.Lagrangian.from_system(ref.system).accelerations(0.0, q, u, ref.params)

@@ -14,8 +14,9 @@ from .._convention import (
     time_rate,
     vector,
 )
-from .._dynamics import AbstractDynamics
+from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._state import check_vector, public_method
+from .._system.base import AbstractMultibody
 
 
 class Lagrangian(AbstractDynamics):
@@ -65,6 +66,23 @@ class Lagrangian(AbstractDynamics):
     forces: Callable | None = None
     dissipation: Callable | None = None
     time_dependent: bool = eqx.field(default=False, static=True)
+
+    @classmethod
+    def from_system(cls, system: AbstractMultibody) -> "Lagrangian":
+        """Lagrange's equations of a description of bodies (`MultibodySystem`,
+        `RigidBodyTree`): T = Σ ½ m v_G·v_G + ½ ω·I ω, its V, and the generalized forces of
+        its loads, dissipation and joint forces along q̇ (Q = (∂u/∂q̇)ᵀ Π). Needs coordinates
+        whose rates determine the speeds: not quaternions (use Gibbs–Appell, Kane or the
+        articulated-body algorithm for those)."""
+        if not isinstance(system, AbstractMultibody):
+            raise ValueError(
+                "Lagrangian.from_system needs a description of bodies (jaxdyn.MultibodySystem "
+                f"or jaxdyn.RigidBodyTree), got {type(system).__name__}."
+            )
+        return cls(kinetic=_SystemQuantity(system, "kinetic"),
+                   potential=_SystemQuantity(system, "potential"),
+                   forces=_SystemQuantity(system, "forces"),
+                   time_dependent=system.time_dependent)
 
     def _kinetic(self, t, q, qd, p):
         value = call(self.kinetic, "kinetic energy T", self.time_dependent, VELOCITY_ARGS,
@@ -118,6 +136,15 @@ class Lagrangian(AbstractDynamics):
         t, q, qd = self._check(t, q, qd)
         return self._lagrangian(t, q, qd, p), self._nonconservative(t, q, qd, p)
 
+    def form_accelerations(self, t, q, qd, p=None, *, small):
+        return accelerations_from_equations(self, t, q, qd, p, small=small)
+
+    def energy_terms(self, t, q, qd, p=None):
+        """(T(t, q, q̇), V(t, q)). For a time-dependent (rheonomic) system T + V is evaluated
+        with the energies at time t and is in general not conserved; see `jacobi_integral`."""
+        t, q, qd = self._check(t, q, qd)
+        return self._kinetic(t, q, qd, p), self._potential(t, q, p)
+
     def form_equations(self, t, q, qd, p=None):
         """(M, f) with M = ∂²L/∂q̇² and f = Q − ∂D/∂q̇ + ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t."""
         t, q, qd = self._check(t, q, qd)
@@ -150,34 +177,10 @@ class Lagrangian(AbstractDynamics):
         return momentum_rate - dL_dq - self._nonconservative(t, q, qd, p)
 
     @public_method("(),(n),(n)->()")
-    def kinetic_energy(self, t, q, qd, p=None):
-        """T(t, q, q̇)."""
-        t, q, qd = self._check(t, q, qd)
-        return self._kinetic(t, q, qd, p)
-
-    @public_method("(),(n),(n)->()")
-    def potential_energy(self, t, q, qd, p=None):
-        """V(t, q) (q̇ is accepted for a uniform signature and ignored)."""
-        t, q, qd = self._check(t, q, qd)
-        return self._potential(t, q, p)
-
-    @public_method("(),(n),(n)->()")
     def lagrangian(self, t, q, qd, p=None):
         """L = T − V."""
         t, q, qd = self._check(t, q, qd)
         return self._lagrangian(t, q, qd, p)
-
-    @public_method("(),(n),(n)->()")
-    def energy(self, t, q, qd, p=None):
-        """Mechanical energy E = T + V.
-
-        Conserved when the system is conservative (no Q, no D) and scleronomic. With dissipation
-        D homogeneous of degree 2 in q̇, dE/dt = −2D + Q·q̇. For a time-dependent (rheonomic)
-        system E is evaluated with the energies at time t and is in general not conserved: the
-        power of the driving appears in it; see `jacobi_integral`.
-        """
-        t, q, qd = self._check(t, q, qd)
-        return self._kinetic(t, q, qd, p) + self._potential(t, q, p)
 
     @public_method("(),(n),(n)->()")
     def jacobi_integral(self, t, q, qd, p=None):
@@ -191,8 +194,26 @@ class Lagrangian(AbstractDynamics):
         lagrangian, momentum = jax.value_and_grad(self._lagrangian, argnums=2)(t, q, qd, p)
         return jnp.dot(qd, momentum) - lagrangian
 
-    @public_method("(),(n),(n)->(n)")
-    def momentum(self, t, q, qd, p=None):
-        """Generalized momenta ∂L/∂q̇ (conserved along a cyclic coordinate)."""
-        t, q, qd = self._check(t, q, qd)
-        return jax.grad(self._lagrangian, argnums=2)(t, q, qd, p)
+
+class _SystemQuantity(eqx.Module):
+    """A description's kinetic energy, potential energy or generalized forces as a callback
+    in Lagrange's calling convention (t first when the description is time-dependent)."""
+
+    system: AbstractMultibody
+    quantity: str = eqx.field(static=True)
+
+    def __call__(self, *args):
+        system = self.system
+        if system.time_dependent:
+            t, *args = args
+        else:
+            t = jnp.zeros((), args[0].dtype)
+        if self.quantity == "potential":
+            q, p = args
+            return system.potential_energy(t, q, p)
+        q, qd, p = args
+        u, transpose = jax.vjp(lambda qd: system.speeds_from_rates(t, q, qd, p), qd)
+        if self.quantity == "kinetic":
+            return system.kinetic_energy(t, q, u, p)
+        # Q·δq̇ = Π·δu with u linear in q̇: Q = (∂u/∂q̇)ᵀ Π.
+        return transpose(system.applied_forces(t, q, u, p))[0]

@@ -7,9 +7,10 @@ import jax
 import jax.numpy as jnp
 
 from .._convention import call, scalar, vector
-from .._dynamics import AbstractDynamics
+from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._speeds import kinematic_matrix
 from .._state import check_vector
+from .._system.base import AbstractMultibody
 
 GIBBS_ARGS = ("q", "u", "ud", "p")
 ACTIVE_ARGS = ("q", "u", "p")
@@ -35,7 +36,9 @@ class GibbsAppell(AbstractDynamics):
       speeds are independent quasi-velocities of a nonholonomic system.
     - `time_dependent`: if True every callback takes t first.
 
-    Build one from bodies with `MultibodySystem.gibbs_appell(kinematic_map)`.
+    Build one from a description of bodies with `GibbsAppell.from_system(system, K)`: S is
+    then Σ ½ m a_G·a_G + ½ α·I α + α·(ω × I ω) over the bodies (Khang's matrix form: with the
+    body accelerations affine in u̇, a = J u̇ + J̇ u, its Hessian is Σ Jᵀ M_body J).
 
     Reference: P. Appell (1899); N. V. Khang, Vietnam J. Mech. 28(4) (2006); reference.md §3.
     """
@@ -44,17 +47,52 @@ class GibbsAppell(AbstractDynamics):
     active_forces: Callable | None = None
     kinematic_map: Callable | None = None
     time_dependent: bool = eqx.field(default=False, static=True)
+    system: AbstractMultibody | None = None
+
+    @classmethod
+    def from_system(cls, system: AbstractMultibody, kinematic_map=None) -> "GibbsAppell":
+        """The Gibbs–Appell equations of a description of bodies (`MultibodySystem`,
+        `RigidBodyTree`), in the speeds of `kinematic_map` (if given; else the description's
+        own)."""
+        if not isinstance(system, AbstractMultibody):
+            raise ValueError(
+                "GibbsAppell.from_system needs a description of bodies (jaxdyn.MultibodySystem "
+                f"or jaxdyn.RigidBodyTree), got {type(system).__name__}."
+            )
+        return cls(gibbs=_SystemQuantity(system, "gibbs", kinematic_map),
+                   active_forces=_SystemQuantity(system, "active", kinematic_map),
+                   kinematic_map=kinematic_map, time_dependent=system.time_dependent,
+                   system=system)
+
+    def _kinematic_matrix(self, t, q, u, p):
+        if self.system is not None:
+            return self.system.kinematic_matrix(t, q, p, self.kinematic_map, u)
+        return kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, p, u)
 
     def coordinate_rates(self, t, q, u, p=None):
         """q̇ = K(t, q, p) u."""
-        return kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p) @ u
+        return self._kinematic_matrix(t, q, u, p) @ u
 
     def _check(self, t, q, u, p):
         q = check_vector(q, "q")
         u = check_vector(u, "u")
         t = jnp.asarray(t, q.dtype)
-        kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, u, p)  # shape check
+        self._kinematic_matrix(t, q, u, p)  # checks the shapes
         return t, q, u
+
+    def energy_terms(self, t, q, u, p=None):
+        if self.system is None:
+            raise ValueError(
+                "A GibbsAppell built from a Gibbs function has no kinetic or potential energy. "
+                "Build it from a description of bodies (GibbsAppell.from_system) for the "
+                "energies and momenta."
+            )
+        t, q, u = self._check(t, q, u, p)
+        return (self.system.kinetic_energy(t, q, u, p, self.kinematic_map),
+                self.system.potential_energy(t, q, p))
+
+    def form_accelerations(self, t, q, u, p=None, *, small):
+        return accelerations_from_equations(self, t, q, u, p, small=small)
 
     def _gibbs(self, t, q, u, ud, p):
         value = call(self.gibbs, "Gibbs function S", self.time_dependent, GIBBS_ARGS,
@@ -85,3 +123,23 @@ class GibbsAppell(AbstractDynamics):
         bias, hessian_times = jax.linearize(jax.grad(gibbs), jnp.zeros_like(u))
         mass_matrix = jax.vmap(hessian_times)(jnp.eye(u.shape[0], dtype=u.dtype))
         return mass_matrix, self._active_forces(t, q, u, p) - bias
+
+
+class _SystemQuantity(eqx.Module):
+    """A description's Gibbs function or active forces, as a callback in the calling
+    convention (t first when the description is time-dependent)."""
+
+    system: AbstractMultibody
+    quantity: str = eqx.field(static=True)
+    kinematic_map: Callable | None
+
+    def __call__(self, *args):
+        if self.system.time_dependent:
+            t, *args = args
+        else:
+            t = jnp.zeros((), args[0].dtype)
+        if self.quantity == "gibbs":
+            q, u, ud, p = args
+            return self.system.gibbs_function(t, q, u, ud, p, self.kinematic_map)
+        q, u, p = args
+        return self.system.generalized_active_forces(t, q, u, p, self.kinematic_map)

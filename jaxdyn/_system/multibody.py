@@ -1,4 +1,4 @@
-"""A system of particles and rigid bodies: one description, three formulations."""
+"""A system of particles and rigid bodies, each described by its position and orientation."""
 
 from typing import Callable
 
@@ -14,24 +14,21 @@ from .._convention import (
     time_rate,
     vector,
 )
-from .._form.euler_lagrange import Lagrangian
-from .._form.gibbs_appell import GibbsAppell
-from .._speeds import coordinate_motion, kinematic_matrix
+from .._speeds import kinematic_matrix
+from .base import AbstractMultibody
 from .bodies import Particle, RigidBody, _value
 from .loads import BodyTorque, PointForce
 
 
-class MultibodySystem(eqx.Module):
+class MultibodySystem(AbstractMultibody):
     """Particles and rigid bodies with potential energy, applied loads and dissipation.
 
-    From this one description jaxdyn forms the equations of motion three ways:
-
-    - `system.lagrangian()`: the kinetic energy T = Σ ½ m v·v + ½ ω·Iω for Lagrange's
-      equations of the second kind;
-    - `system.gibbs_appell(kinematic_map)`: the Gibbs function
-      S = Σ ½ m a·a + ½ α·Iα + α·(ω × Iω) for the Gibbs–Appell equations ∂S/∂u̇ = Π;
-    - `jaxdyn.Kane(system, kinematic_map)`: partial velocities and generalized active and
-      inertia forces, F_r + F*_r = 0.
+    Each body is described by its position (and, for rigid bodies, its orientation) as a
+    function of the coordinates; velocities, angular velocities, accelerations and partial
+    velocities follow by automatic differentiation. Any formulation takes this description:
+    `jaxdyn.Lagrangian.from_system(system)`, `jaxdyn.GibbsAppell.from_system(system, K)`,
+    `jaxdyn.Kane.from_system(system, K)` (with generalized speeds q̇ = K(q, p) u, fewer of them
+    than coordinates for nonholonomic systems).
 
     **Arguments:**
 
@@ -40,7 +37,7 @@ class MultibodySystem(eqx.Module):
     - `gravity`: the gravitational acceleration vector (3,) or a function g(p), or None; it adds
       Σ −m g·r_G to the potential.
     - `loads`: a sequence of `PointForce` and `BodyTorque`.
-    - `forces`: further generalized forces Q(q, qd, p) → (n,), or None.
+    - `forces`: further generalized forces Q(q, qd, p) → (n,), along q̇, or None.
     - `dissipation`: Rayleigh dissipation function D(q, qd, p), or None.
     - `time_dependent`: if True every callback (positions, orientations, loads, energies,
       the kinematic map) takes t first.
@@ -73,13 +70,35 @@ class MultibodySystem(eqx.Module):
     def _t_dot(self, t):
         return time_rate(t, self.time_dependent)
 
-    # -- energies and forces on (t, q, q̇): everything Lagrange's equations need ---------------
+    def kinematic_matrix(self, t, q, p, kinematic_map=None, u=None):
+        return kinematic_matrix(kinematic_map, self.time_dependent, t, q, p, u)
 
-    def kinetic_energy(self, t, q, qd, p):
-        """T = Σ ½ m v·v + ½ ω·I ω."""
+    def speeds_from_rates(self, t, q, qd, p):
+        return qd
+
+    def inertias(self, p):
+        masses = jnp.stack([jnp.asarray(_value(b.mass, p)) for b in self.bodies])
+        zero = jnp.zeros((3, 3), masses.dtype)
+        inertias = jnp.stack([b._inertia(p) if isinstance(b, RigidBody) else zero
+                              for b in self.bodies])
+        return masses, inertias.astype(masses.dtype)
+
+    def body_velocities(self, t, q, u, p, kinematic_map=None):
+        qd = self.coordinate_rates(t, q, u, p, kinematic_map)
         t_dot = self._t_dot(t)
-        return sum(b.kinetic_energy(self.time_dependent, t, q, t_dot, qd, p)
-                   for b in self.bodies)
+        velocities, omegas = [], []
+        for body in self.bodies:
+            velocities.append(body.velocity(self.time_dependent, t, q, t_dot, qd, p))
+            omegas.append(body.angular_velocity(self.time_dependent, t, q, t_dot, qd, p)
+                          if isinstance(body, RigidBody) else jnp.zeros(3, q.dtype))
+        return jnp.stack(velocities), jnp.stack(omegas)
+
+    def body_poses(self, t, q, p):
+        positions = jnp.stack([b._position(self.time_dependent, t, q, p) for b in self.bodies])
+        eye = jnp.eye(3, dtype=q.dtype)
+        rotations = jnp.stack([b._orientation(self.time_dependent, t, q, p)
+                               if isinstance(b, RigidBody) else eye for b in self.bodies])
+        return positions, rotations
 
     def potential_energy(self, t, q, p):
         """V(q) plus the gravitational energy Σ −m g·r_G."""
@@ -95,8 +114,8 @@ class MultibodySystem(eqx.Module):
                     g, body._position(self.time_dependent, t, q, p))
         return total
 
-    def applied_forces(self, t, q, qd, p):
-        """Generalized forces of the loads and of Q: Σ F·∂v/∂q̇ + Σ τ·∂ω/∂q̇ + Q."""
+    def forces_along_rates(self, t, q, qd, p):
+        """The generalized forces of the loads and of Q along q̇, and −∂D/∂q̇."""
         t_dot = self._t_dot(t)
         total = jnp.zeros_like(qd)
         for load in self.loads:
@@ -105,108 +124,20 @@ class MultibodySystem(eqx.Module):
             total = total + vector(call(self.forces, "generalized forces Q",
                                         self.time_dependent, VELOCITY_ARGS, t, q, qd, p),
                                    "generalized forces Q", qd.shape)
+        if self.dissipation is not None:
+            def dissipation(qd):
+                return scalar(call(self.dissipation, "dissipation function D",
+                                   self.time_dependent, VELOCITY_ARGS, t, q, qd, p),
+                              "dissipation function D")
+            total = total - jax.grad(dissipation)(qd)
         return total
 
-    def dissipation_function(self, t, q, qd, p):
-        """Rayleigh's D(q, q̇) (zero if none was given)."""
-        if self.dissipation is None:
-            return jnp.zeros((), q.dtype)
-        return scalar(call(self.dissipation, "dissipation function D", self.time_dependent,
-                           VELOCITY_ARGS, t, q, qd, p), "dissipation function D")
+    def applied_forces(self, t, q, u, p, kinematic_map=None):
+        """Π = Kᵀ (Σ F·∂v/∂q̇ + Σ τ·∂ω/∂q̇ + Q − ∂D/∂q̇), at q̇ = K u."""
+        k = self.kinematic_matrix(t, q, p, kinematic_map)
+        return k.T @ self.forces_along_rates(t, q, k @ u, p)
 
-    def lagrangian(self) -> Lagrangian:
-        """These bodies and loads as a `jaxdyn.Lagrangian` (coordinates q, speeds q̇)."""
-        return Lagrangian(
-            kinetic=_TimeFirst(self.kinetic_energy, self.time_dependent),
-            potential=_TimeFirst(self.potential_energy, self.time_dependent),
-            forces=_TimeFirst(self.applied_forces, self.time_dependent),
-            dissipation=self.dissipation,
-            time_dependent=self.time_dependent,
-        )
-
-    # -- in generalized speeds u, q̇ = K u: what Gibbs–Appell and Kane need -------------------
-
-    def coordinate_rates(self, t, q, u, p, kinematic_map=None):
-        """q̇ = K(t, q, p) u."""
-        return kinematic_matrix(kinematic_map, self.time_dependent, t, q, u, p) @ u
-
-    def generalized_active_forces(self, t, q, u, p, kinematic_map=None):
-        """Π_r = F_r = Kᵀ (Q_applied − ∂V/∂q − ∂D/∂q̇): the active forces along each speed."""
-        k = kinematic_matrix(kinematic_map, self.time_dependent, t, q, u, p)
-        qd = k @ u
-        potential_force = -jax.grad(self.potential_energy, argnums=1)(t, q, p)
-        dissipative_force = -jax.grad(self.dissipation_function, argnums=2)(t, q, qd, p)
-        return k.T @ (self.applied_forces(t, q, qd, p) + potential_force + dissipative_force)
-
-    def gibbs_function(self, t, q, u, ud, p, kinematic_map=None):
-        """S = Σ ½ m a·a + ½ α·I α + α·(ω × I ω), with q̇ = K u and q̈ = K̇ u + K u̇."""
-        t_dot = self._t_dot(t)
-        qd, qdd = coordinate_motion(kinematic_map, self.time_dependent, t, q, t_dot, u, ud, p)
-        return sum(b.gibbs_function(self.time_dependent, t, q, t_dot, qd, qdd, p)
-                   for b in self.bodies)
-
-    def partial_velocities(self, t, q, u, p, kinematic_map=None):
-        """Per body, v_r = ∂v/∂u_r (3, m), and for rigid bodies ω_r = ∂ω/∂u_r (3, m, body
-        axes); Jacobians of the velocities in the speeds."""
-        t_dot = self._t_dot(t)
-        k = kinematic_matrix(kinematic_map, self.time_dependent, t, q, u, p)
-        partials = []
-        for body in self.bodies:
-            def velocity(u, body=body):
-                return body.velocity(self.time_dependent, t, q, t_dot, k @ u, p)
-
-            def angular_velocity(u, body=body):
-                return body.angular_velocity(self.time_dependent, t, q, t_dot, k @ u, p)
-
-            v_r = jax.jacfwd(velocity)(u)
-            w_r = jax.jacfwd(angular_velocity)(u) if isinstance(body, RigidBody) else None
-            partials.append((v_r, w_r))
-        return partials
-
-    def generalized_inertia_forces(self, t, q, u, ud, p, kinematic_map=None, partials=None):
-        """F*_r = −Σ m a·v_r − Σ (I α + ω × I ω)·ω_r (Kane)."""
-        t_dot = self._t_dot(t)
-        if partials is None:
-            partials = self.partial_velocities(t, q, u, p, kinematic_map)
-        qd, qdd = coordinate_motion(kinematic_map, self.time_dependent, t, q, t_dot, u, ud, p)
-        total = jnp.zeros_like(u)
-        for body, (v_r, w_r) in zip(self.bodies, partials):
-            terms = body.inertia_terms(self.time_dependent, t, q, t_dot, qd, qdd, p)
-            total = total - terms[0] * terms[1] @ v_r
-            if w_r is not None:
-                _, _, inertia, omega, alpha = terms
-                total = total - (inertia @ alpha + jnp.cross(omega, inertia @ omega)) @ w_r
-        return total
-
-    def gibbs_appell(self, kinematic_map=None):
-        """These bodies and loads as a `jaxdyn.GibbsAppell`, in speeds q̇ = K(q, p) u."""
-        return GibbsAppell(
-            gibbs=_TimeFirst(_WithMap(self.gibbs_function, kinematic_map), self.time_dependent),
-            active_forces=_TimeFirst(_WithMap(self.generalized_active_forces, kinematic_map),
-                                     self.time_dependent),
-            kinematic_map=kinematic_map,
-            time_dependent=self.time_dependent,
-        )
-
-
-class _TimeFirst(eqx.Module):
-    """Adapts a system method (t first) to the calling convention of `time_dependent`."""
-
-    method: Callable
-    time_dependent: bool = eqx.field(static=True)
-
-    def __call__(self, *args):
-        if self.time_dependent:
-            return self.method(*args)
-        q = args[0]
-        return self.method(jnp.zeros((), q.dtype), *args)
-
-
-class _WithMap(eqx.Module):
-    """A system method with its kinematic map bound."""
-
-    method: Callable
-    kinematic_map: Callable | None
-
-    def __call__(self, *args):
-        return self.method(*args, kinematic_map=self.kinematic_map)
+    def user_functions(self, t, q, u, p, kinematic_map=None):
+        qd = self.coordinate_rates(t, q, u, p, kinematic_map)
+        return (self.body_velocities(t, q, u, p, kinematic_map), self.potential_energy(t, q, p),
+                self.forces_along_rates(t, q, qd, p), qd)

@@ -1,0 +1,523 @@
+"""A tree of rigid links connected by joints, with recursive kinematics.
+
+Each link's pose and velocity reuse its parent's (Featherstone, Rigid Body Dynamics
+Algorithms, 2008, ch. 4): with the joint frame F placed in the parent P by (R_T, r_T) and the
+link frame C moved in F by its joint, (R_J(q), r_J(q)), the link sits in its parent at
+
+    R_PC = R_T R_J,   r_PC = r_T + R_T r_J,
+
+in the world at R_WC = R_WP R_PC, r_WC = r_WP + R_WP r_PC, and moves with the spatial velocity
+
+    ω_C = R_PCᵀ ω_P + ω_J,   v_C = R_PCᵀ (v_P + ω_P × r_PC) + v_J     (C's axes)
+
+where (ω_J, v_J) = S u is the joint's own motion. The joints of one type are evaluated
+together; the recursion itself runs as a Python loop for small trees (straight-line code, which
+`jaxdyn._unroll` turns into a few kernels) and as a `lax.scan` over the links in topological
+order for large ones, so that compile time does not grow with the number of links.
+"""
+
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._convention import call, scalar, vector
+from . import spatial
+from .base import AbstractMultibody
+from .joints import AbstractJoint
+
+# Trees with more links than this run their recursions as a `lax.scan` (compile time
+# independent of the number of links); smaller ones as a Python loop (straight-line code).
+LOOP_MAX = 12
+
+JOINT_ARGS = ("q", "u", "p")
+
+
+def _vector3(x, name):
+    x = np.asarray(x, dtype=float)
+    if x.shape != (3,):
+        raise ValueError(f"{name} must be a 3-vector, got shape {x.shape}.")
+    return tuple(float(a) for a in x)
+
+
+def _rotation(x):
+    x = np.eye(3) if x is None else np.asarray(x, dtype=float)
+    if x.shape != (3, 3):
+        raise ValueError(f"A link's rotation must be a 3×3 matrix, got shape {x.shape}.")
+    if not np.allclose(x.T @ x, np.eye(3), atol=1e-9) or np.linalg.det(x) < 0:
+        raise ValueError("A link's rotation must be a proper rotation matrix (RᵀR = I, det 1).")
+    return tuple(tuple(float(a) for a in row) for row in x)
+
+
+def _value(x, p):
+    return jnp.asarray(x(p) if callable(x) else x)
+
+
+class Link(eqx.Module):
+    """A rigid link of a `RigidBodyTree`, and the joint that moves it relative to its parent.
+
+    **Arguments:**
+
+    - `name`: unique within the tree.
+    - `joint`: a `jaxdyn.Revolute`, `Prismatic`, `Spherical`, `Planar`, `Free` or `Fixed`.
+    - `parent`: the parent link's name, or None for the world (a fixed base).
+    - `translation`, `rotation`: the joint frame's placement in the parent's frame (origin,
+      and axes as the columns of a rotation matrix); the link's frame coincides with the joint
+      frame when the joint is at rest (q = 0, identity quaternion).
+    - `mass`, `com` (centre of mass, link frame), `inertia` (3 × 3, about the centre of mass,
+      link axes): numbers/arrays, or functions of the parameters p (to fit them).
+    - `stiffness`, `damping`, `rest`: a joint spring ½ k (q − rest)² and damper −c q̇ (for
+      revolute and prismatic joints); numbers or functions of p, or None.
+    """
+
+    name: str = eqx.field(static=True)
+    joint: AbstractJoint
+    parent: str | None = eqx.field(static=True, default=None)
+    translation: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
+                                   converter=lambda x: _vector3(x, "A link's translation"))
+    rotation: tuple = eqx.field(static=True, default=None, converter=_rotation)
+    mass: float | Callable = 0.0
+    com: jax.Array | Callable = (0.0, 0.0, 0.0)
+    inertia: jax.Array | Callable | None = None
+    stiffness: float | Callable | None = None
+    damping: float | Callable | None = None
+    rest: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self):
+        if not isinstance(self.joint, AbstractJoint):
+            raise ValueError(f"Link {self.name!r}: joint must be a jaxdyn joint (Revolute, "
+                             f"Prismatic, Spherical, Planar, Free, Fixed), got "
+                             f"{type(self.joint).__name__}.")
+        if (self.stiffness is not None or self.damping is not None) and self.joint.nv != 1:
+            raise ValueError(f"Link {self.name!r}: joint springs and dampers apply to "
+                             "revolute and prismatic joints (one coordinate).")
+
+
+class LinkLoad(eqx.Module):
+    """A force (at a point of a link) and a torque applied to a link, in world axes.
+
+    **Arguments:**
+
+    - `link`: the link's name.
+    - `force`: F(q, u, p) → (3,) in world axes, or None.
+    - `torque`: τ(q, u, p) → (3,) in world axes, or None.
+    - `point`: where the force acts, in the link's frame (default its origin).
+
+    Both take t first in a time-dependent tree.
+    """
+
+    link: str = eqx.field(static=True)
+    force: Callable | None = None
+    torque: Callable | None = None
+    point: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
+                             converter=lambda x: _vector3(x, "A load's point"))
+
+
+class RigidBodyTree(AbstractMultibody):
+    """Rigid links connected in a tree by joints: robots, linkages, chains, ropes.
+
+    Coordinates and speeds are those of the joints, in the order of the links; q̇ = K(q) u with
+    K block-diagonal (the identity for revolute and prismatic joints, quaternion kinematics for
+    spherical and free joints). Every formulation takes this description:
+    `jaxdyn.ArticulatedBody(tree)` (the articulated-body algorithm, O(N): the fast default),
+    `jaxdyn.Kane.from_system(tree)`, `jaxdyn.GibbsAppell.from_system(tree)`,
+    `jaxdyn.Lagrangian.from_system(tree)` (not for quaternion joints).
+
+    **Arguments:**
+
+    - `links`: a sequence of `jaxdyn.Link`, each listed after its parent.
+    - `gravity`: the gravitational acceleration (3,) in world axes, or a function g(p), or None.
+    - `forces`: τ(q, u, p) → (m,), generalized forces along the speeds (motor torques, any
+      joint-space law), or None.
+    - `loads`: a sequence of `jaxdyn.LinkLoad`.
+    - `potential`: a further potential energy V(q, p), or None.
+    - `time_dependent`: if True `forces`, the loads and `potential` take t first.
+
+    **Example:** a double pendulum of two rods swinging about z.
+
+        rod = dict(mass=1.0, com=(0.5, 0.0, 0.0), inertia=jnp.diag(jnp.array([0., 1., 1.]) / 12))
+        tree = jaxdyn.RigidBodyTree([
+            jaxdyn.Link("upper", jaxdyn.Revolute((0, 0, 1)), **rod),
+            jaxdyn.Link("lower", jaxdyn.Revolute((0, 0, 1)), parent="upper",
+                        translation=(1.0, 0.0, 0.0), **rod),
+        ], gravity=jnp.array([0.0, -9.81, 0.0]))
+    """
+
+    links: tuple[Link, ...] = eqx.field(converter=tuple)
+    gravity: jax.Array | Callable | None = None
+    forces: Callable | None = None
+    loads: tuple[LinkLoad, ...] = eqx.field(default=(), converter=tuple)
+    potential: Callable | None = None
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        if len(self.links) == 0:
+            raise ValueError("A RigidBodyTree needs at least one link.")
+        seen = {}
+        for i, link in enumerate(self.links):
+            if not isinstance(link, Link):
+                raise ValueError(f"links must be jaxdyn.Link, got {type(link).__name__}.")
+            if link.name in seen:
+                raise ValueError(f"Two links are named {link.name!r}: names must be unique.")
+            if link.parent is not None and link.parent not in seen:
+                later = [lk.name for lk in self.links[i + 1:]]
+                if link.parent in later:
+                    raise ValueError(f"Link {link.name!r} is listed before its parent "
+                                     f"{link.parent!r}: list every link after its parent.")
+                raise ValueError(f"Link {link.name!r} has the parent {link.parent!r}, which is "
+                                 "not a link of the tree.")
+            seen[link.name] = i
+        for load in self.loads:
+            if not isinstance(load, LinkLoad) or load.link not in seen:
+                raise ValueError(f"loads must be jaxdyn.LinkLoad on links of the tree, got "
+                                 f"{load!r}.")
+
+    # -- structure -----------------------------------------------------------------------------
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        """The index of each link's parent (−1 for the world)."""
+        index = {link.name: i for i, link in enumerate(self.links)}
+        return tuple(-1 if link.parent is None else index[link.parent] for link in self.links)
+
+    @property
+    def num_coordinates(self) -> int:
+        return sum(link.joint.nq for link in self.links)
+
+    @property
+    def num_speeds(self) -> int:
+        return sum(link.joint.nv for link in self.links)
+
+    def _offsets(self, size):
+        offsets, start = [], 0
+        for link in self.links:
+            offsets.append(start)
+            start += size(link.joint)
+        return offsets
+
+    def coordinate_slices(self) -> dict[str, slice]:
+        """Where each link's joint coordinates sit in q."""
+        starts = self._offsets(lambda j: j.nq)
+        return {link.name: slice(s, s + link.joint.nq) for link, s in zip(self.links, starts)}
+
+    def speed_slices(self) -> dict[str, slice]:
+        """Where each link's joint speeds sit in u."""
+        starts = self._offsets(lambda j: j.nv)
+        return {link.name: slice(s, s + link.joint.nv) for link, s in zip(self.links, starts)}
+
+    def neutral_configuration(self) -> np.ndarray:
+        """q with every joint at rest (angles 0, identity quaternions)."""
+        return np.concatenate([link.joint.neutral() for link in self.links])
+
+    def _groups(self):
+        """Links whose joints are identical, evaluated together: (joint, link indices,
+        coordinate indices (k, nq), speed indices (k, nv))."""
+        q_starts, u_starts = self._offsets(lambda j: j.nq), self._offsets(lambda j: j.nv)
+        groups = {}
+        for i, link in enumerate(self.links):
+            groups.setdefault(link.joint, []).append(i)
+        out = []
+        for joint, members in groups.items():
+            q_index = np.array([[q_starts[i] + k for k in range(joint.nq)] for i in members],
+                               dtype=np.int32).reshape(len(members), joint.nq)
+            u_index = np.array([[u_starts[i] + k for k in range(joint.nv)] for i in members],
+                               dtype=np.int32).reshape(len(members), joint.nv)
+            out.append((joint, members, q_index, u_index))
+        return out
+
+    def _placements(self):
+        rotations = np.array([np.asarray(link.rotation) for link in self.links])
+        translations = np.array([np.asarray(link.translation) for link in self.links])
+        return rotations, translations
+
+    # -- joint motion and the recursion ---------------------------------------------------------
+
+    def _by_link(self, pieces, dtype):
+        """Per-group results → arrays in link order."""
+        order = np.concatenate([np.asarray(members) for _, members, _, _ in self._groups()])
+        inverse = np.argsort(order)
+        stacked = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *pieces)
+        return jax.tree_util.tree_map(lambda x: x[inverse].astype(dtype), stacked)
+
+    def joint_motion(self, q, u=None):
+        """For every link (in order): its pose in its parent (R_PC (N, 3, 3), r_PC (N, 3)), and
+        with `u` its joint velocity (ω_J, v_J) (N, 3) each, in its own axes."""
+        rotations_t, translations_t = self._placements()
+        poses, twists = [], []
+        for joint, _, q_index, u_index in self._groups():
+            rotation_j, translation_j = joint.transform(q[q_index])
+            poses.append((rotation_j, translation_j))
+            if u is not None:
+                twists.append(joint.twist(u[u_index]))
+        rotation_j, translation_j = self._by_link(poses, q.dtype)
+        rotations_t = jnp.asarray(rotations_t, q.dtype)
+        rotation = spatial.matmul(rotations_t, rotation_j)
+        translation = jnp.asarray(translations_t, q.dtype) + spatial.matvec(rotations_t,
+                                                                           translation_j)
+        if u is None:
+            return rotation, translation
+        omega_j, velocity_j = self._by_link(twists, q.dtype)
+        return rotation, translation, omega_j, velocity_j
+
+    def forward(self, step, root, per_link):
+        """The parent-to-child recursion: state_i = step(state of parent(i), per_link[i]), with
+        `root` the world's state; returns the stacked states of the links."""
+        parents = self.parents
+        n = len(parents)
+        if n <= LOOP_MAX:
+            states = []
+            for i, parent in enumerate(parents):
+                previous = root if parent < 0 else states[parent]
+                states.append(step(previous, jax.tree_util.tree_map(lambda x: x[i], per_link)))
+            return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+        # The world's state in the last slot of a buffer indexed by link.
+        buffer = jax.tree_util.tree_map(
+            lambda r: jnp.broadcast_to(r, (n + 1,) + jnp.shape(r)).astype(jnp.result_type(r)),
+            root)
+        parent_index = np.array([n if parent < 0 else parent for parent in parents], np.int32)
+
+        def body(buffer, xs):
+            i, parent, data = xs
+            state = step(jax.tree_util.tree_map(lambda b: b[parent], buffer), data)
+            return jax.tree_util.tree_map(lambda b, s: b.at[i].set(s), buffer, state), None
+
+        buffer, _ = jax.lax.scan(body, buffer, (np.arange(n, dtype=np.int32), parent_index,
+                                                per_link))
+        return jax.tree_util.tree_map(lambda b: b[:n], buffer)
+
+    def backward(self, step, zero, per_link):
+        """The child-to-parent recursion, links in reverse order: (out_i, to_parent_i) =
+        step(acc_i, per_link[i]), where acc_i is `zero` plus what the children of i passed up.
+        Returns the stacked outputs and what the roots passed to the world."""
+        parents = self.parents
+        n = len(parents)
+        if n <= LOOP_MAX:
+            accumulated = [zero] * (n + 1)  # the last for the world
+            outputs = [None] * n
+            for i in reversed(range(n)):
+                out, up = step(accumulated[i], jax.tree_util.tree_map(lambda x: x[i], per_link))
+                outputs[i] = out
+                target = n if parents[i] < 0 else parents[i]
+                accumulated[target] = jax.tree_util.tree_map(jnp.add, accumulated[target], up)
+            stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *outputs)
+            return stacked, accumulated[n]
+        buffer = jax.tree_util.tree_map(
+            lambda z: jnp.broadcast_to(z, (n + 1,) + jnp.shape(z)).astype(jnp.result_type(z)),
+            zero)
+        parent_index = np.array([n if parent < 0 else parent for parent in parents], np.int32)
+
+        def body(buffer, xs):
+            i, parent, data = xs
+            out, up = step(jax.tree_util.tree_map(lambda b: b[i], buffer), data)
+            buffer = jax.tree_util.tree_map(lambda b, x: b.at[parent].add(x), buffer, up)
+            return buffer, out
+
+        buffer, outputs = jax.lax.scan(
+            body, buffer, (np.arange(n, dtype=np.int32), parent_index, per_link), reverse=True)
+        return outputs, jax.tree_util.tree_map(lambda b: b[n], buffer)
+
+    def link_states(self, t, q, u, p):
+        """World poses and velocities of the links: (R_WC (N, 3, 3), r_WC (N, 3), ω (N, 3),
+        v (N, 3)), the angular velocity and the velocity of each link's origin in its own
+        axes."""
+        rotation, translation, omega_j, velocity_j = self.joint_motion(q, u)
+        dtype = q.dtype
+
+        def step(parent, link):
+            rotation_wp, origin_wp, omega_p, velocity_p = parent
+            rotation_pc, origin_pc, omega_jc, velocity_jc = link
+            omega, velocity = spatial.motion_to_child(rotation_pc, origin_pc, omega_p,
+                                                      velocity_p)
+            return (spatial.matmul(rotation_wp, rotation_pc),
+                    origin_wp + spatial.matvec(rotation_wp, origin_pc),
+                    omega + omega_jc, velocity + velocity_jc)
+
+        root = (jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype), jnp.zeros(3, dtype),
+                jnp.zeros(3, dtype))
+        return self.forward(step, root, (rotation, translation, omega_j, velocity_j))
+
+    def link_poses(self, t, q, p):
+        """(R_WC (N, 3, 3), r_WC (N, 3)): the links' frames in the world."""
+        rotation, translation = self.joint_motion(q)
+
+        def step(parent, link):
+            rotation_wp, origin_wp = parent
+            rotation_pc, origin_pc = link
+            return (spatial.matmul(rotation_wp, rotation_pc),
+                    origin_wp + spatial.matvec(rotation_wp, origin_pc))
+
+        root = (jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype))
+        return self.forward(step, root, (rotation, translation))
+
+    # -- inertia, energies and forces ---------------------------------------------------------
+
+    def link_inertias(self, p, dtype=None):
+        """(masses (N,), centres of mass (N, 3), inertias about them (N, 3, 3))."""
+        masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in self.links])
+        dtype = masses.dtype if dtype is None else dtype
+        coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links])
+        zero = jnp.zeros((3, 3), dtype)
+        inertias = jnp.stack([zero if link.inertia is None
+                              else jnp.asarray(_value(link.inertia, p), dtype)
+                              for link in self.links])
+        for name, value, shape in (("com", coms, (len(self.links), 3)),
+                                   ("inertia", inertias, (len(self.links), 3, 3))):
+            if value.shape != shape:
+                raise ValueError(f"Every link's {name} must have shape {shape[1:]}.")
+        return masses.astype(dtype), coms, inertias
+
+    def kinematic_matrix(self, t, q, p, kinematic_map=None, u=None):
+        if kinematic_map is not None:
+            raise ValueError("A RigidBodyTree's speeds are its joints' own: pass no "
+                             "kinematic_map.")
+        self._check_state(q, u)
+        n, m = self.num_coordinates, self.num_speeds
+        k = jnp.zeros((n, m), q.dtype)
+        q_slices, u_slices = self.coordinate_slices(), self.speed_slices()
+        for link in self.links:
+            if link.joint.nq:
+                qs, us = q_slices[link.name], u_slices[link.name]
+                k = k.at[qs, us].set(link.joint.rate_matrix(q[qs]))
+        return k
+
+    def coordinate_rates(self, t, q, u, p, kinematic_map=None):
+        """q̇ = K(q) u, joint by joint."""
+        if kinematic_map is not None:
+            raise ValueError("A RigidBodyTree's speeds are its joints' own: pass no "
+                             "kinematic_map.")
+        self._check_state(q, u)
+        q_slices, u_slices = self.coordinate_slices(), self.speed_slices()
+        pieces = []
+        for link in self.links:
+            if link.joint.nq:
+                qs, us = q_slices[link.name], u_slices[link.name]
+                pieces.append(link.joint.rate_matrix(q[qs]) @ u[us])
+        return jnp.concatenate(pieces) if pieces else jnp.zeros(0, q.dtype)
+
+    def _check_state(self, q, u):
+        if q.shape != (self.num_coordinates,):
+            raise ValueError(f"This tree has {self.num_coordinates} coordinates (its joints'), "
+                             f"but q has shape {q.shape}.")
+        if u is not None and u.shape != (self.num_speeds,):
+            raise ValueError(f"This tree has {self.num_speeds} speeds (its joints'), but u has "
+                             f"shape {u.shape}.")
+
+    def speeds_from_rates(self, t, q, qd, p):
+        self._check_state(q, None)
+        q_slices = self.coordinate_slices()
+        pieces = [link.joint.speeds(q[q_slices[link.name]], qd[q_slices[link.name]])
+                  for link in self.links if link.joint.nq]
+        return jnp.concatenate(pieces) if pieces else jnp.zeros(0, qd.dtype)
+
+    def inertias(self, p):
+        masses, _, inertias = self.link_inertias(p)
+        return masses, inertias
+
+    def body_velocities(self, t, q, u, p, kinematic_map=None):
+        self.kinematic_matrix(t, q, p, kinematic_map, u)  # checks the shapes
+        rotations, _, omega, velocity = self.link_states(t, q, u, p)
+        _, coms, _ = self.link_inertias(p, q.dtype)
+        return spatial.matvec(rotations, velocity + spatial.cross(omega, coms)), omega
+
+    def body_poses(self, t, q, p):
+        rotations, origins = self.link_poses(t, q, p)
+        _, coms, _ = self.link_inertias(p, q.dtype)
+        return origins + spatial.matvec(rotations, coms), rotations
+
+    def gravity_vector(self, p, dtype):
+        """g in world axes (zero without gravity)."""
+        if self.gravity is None:
+            return jnp.zeros(3, dtype)
+        g = jnp.asarray(_value(self.gravity, p), dtype)
+        if g.shape != (3,):
+            raise ValueError(f"gravity must be a 3-vector, got shape {g.shape}.")
+        return g
+
+    def potential_energy(self, t, q, p):
+        """Gravity Σ −m g·r_G, the joint springs ½ k (q − rest)², and `potential`."""
+        total = self.elastic_energy(t, q, p)
+        if self.gravity is not None:
+            masses, _, _ = self.link_inertias(p, q.dtype)
+            centres, _ = self.body_poses(t, q, p)
+            total = total - jnp.sum(masses * spatial.dot(centres, self.gravity_vector(p, q.dtype)))
+        return total
+
+    def elastic_energy(self, t, q, p):
+        """The joint springs ½ k (q − rest)² and `potential`: V without gravity."""
+        total = jnp.zeros((), q.dtype)
+        q_slices = self.coordinate_slices()
+        for link in self.links:
+            if link.stiffness is not None:
+                stretch = q[q_slices[link.name]][0] - link.rest
+                total = total + 0.5 * _value(link.stiffness, p) * stretch**2
+        if self.potential is not None:
+            args = (q, p) if not self.time_dependent else (t, q, p)
+            total = total + scalar(call(self.potential, "potential energy V", False,
+                                        ("q", "p") if not self.time_dependent else
+                                        ("t", "q", "p"), None, *args), "potential energy V")
+        return total
+
+    def joint_forces(self, t, q, u, p):
+        """Generalized forces along the speeds from `forces` and the joint dampers."""
+        total = jnp.zeros_like(u)
+        if self.forces is not None:
+            args = (q, u, p) if not self.time_dependent else (t, q, u, p)
+            names = JOINT_ARGS if not self.time_dependent else ("t", *JOINT_ARGS)
+            total = total + vector(call(self.forces, "generalized forces", False, names, None,
+                                        *args), "generalized forces", u.shape)
+        u_slices = self.speed_slices()
+        for link in self.links:
+            if link.damping is not None:
+                us = u_slices[link.name]
+                total = total.at[us].add(-_value(link.damping, p) * u[us])
+        return total
+
+    def load_wrenches(self, t, q, u, p):
+        """The loads as spatial forces (n, f) on each link, about its origin in its own axes
+        (N, 3) each: what the articulated-body algorithm takes."""
+        n = len(self.links)
+        moments = jnp.zeros((n, 3), q.dtype)
+        forces = jnp.zeros((n, 3), q.dtype)
+        if not self.loads:
+            return moments, forces
+        rotations, _ = self.link_poses(t, q, p)
+        index = {link.name: i for i, link in enumerate(self.links)}
+        args = (q, u, p) if not self.time_dependent else (t, q, u, p)
+        names = JOINT_ARGS if not self.time_dependent else ("t", *JOINT_ARGS)
+        for load in self.loads:
+            i = index[load.link]
+            force = self._load_vector(load.force, "LinkLoad force", names, args, q.dtype)
+            torque = self._load_vector(load.torque, "LinkLoad torque", names, args, q.dtype)
+            force_link = spatial.tmatvec(rotations[i], force)
+            moment_link = spatial.tmatvec(rotations[i], torque) + spatial.cross(
+                jnp.asarray(load.point, q.dtype), force_link)
+            moments = moments.at[i].add(moment_link)
+            forces = forces.at[i].add(force_link)
+        return moments, forces
+
+    @staticmethod
+    def _load_vector(fn, name, names, args, dtype):
+        if fn is None:
+            return jnp.zeros(3, dtype)
+        return vector(call(fn, name, False, names, None, *args), name, (3,))
+
+    def applied_forces(self, t, q, u, p, kinematic_map=None):
+        """Π: joint forces and dampers, and the loads' virtual work Σ J_iᵀ (n_i, f_i) (one VJP
+        of the links' velocities)."""
+        self.kinematic_matrix(t, q, p, kinematic_map, u)  # checks the shapes
+        total = self.joint_forces(t, q, u, p)
+        if self.loads:
+            moments, forces = self.load_wrenches(t, q, u, p)
+
+            def twists(u):
+                _, _, omega, velocity = self.link_states(t, q, u, p)
+                return omega, velocity
+
+            total = total + jax.vjp(twists, u)[1]((moments, forces))[0]
+        return total
+
+    def user_functions(self, t, q, u, p, kinematic_map=None):
+        return (self.potential_energy(t, q, p), self.applied_forces(t, q, u, p, kinematic_map),
+                self.link_inertias(p, q.dtype))

@@ -1,0 +1,126 @@
+"""Robots from URDF files, as a `RigidBodyTree` whose masses and inertias are parameters.
+
+Parsed with yourdfpy (install jaxdyn[urdf]); meshes are not loaded. URDF describes a tree by
+construction (every link has one parent joint): a file in which a link is the child of two
+joints — a closed loop — is refused with an error; loop closures are constraints, not joints.
+Mimic joints are imported as independent joints (as Pinocchio does by default).
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .joints import Fixed, Free, Planar, Prismatic, Revolute
+from .tree import Link, RigidBodyTree
+
+
+class LinkParameter(eqx.Module):
+    """Reads a link's inertial value from the parameters: p[link][key]."""
+
+    link: str = eqx.field(static=True)
+    key: str = eqx.field(static=True)
+
+    def __call__(self, p):
+        return p[self.link][self.key]
+
+
+def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
+              parameters: bool = True):
+    """Load a URDF robot model.
+
+    **Arguments:**
+
+    - `path`: the .urdf file.
+    - `floating`: if True the root link moves freely (a `Free` joint: 6 degrees of freedom,
+      q = (position, quaternion (w, x, y, z)), u = (v, ω) in the root link's axes), as for
+      legged robots and humanoids; else it is fixed to the world.
+    - `gravity`: the gravitational acceleration in world axes (URDF's z is up).
+    - `parameters`: if True (the default) every link's mass, centre of mass and inertia are
+      read from the parameters p, so that they can be fitted, and the values in the file are
+      returned as p; if False they are constants of the tree and p is None.
+
+    **Returns:** (tree, p), with p = {link name: {"mass", "com", "inertia"}} (inertia about the
+    centre of mass, in link axes).
+
+    Joints: revolute and continuous → `Revolute` (an angle), prismatic → `Prismatic`, fixed →
+    `Fixed`, floating → `Free`, planar (about the joint's z axis) → `Planar`.
+    """
+    try:
+        import yourdfpy
+    except ImportError as error:  # an optional dependency
+        raise ImportError("URDF import needs yourdfpy: pip install 'jaxdyn[urdf]'.") from error
+    model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
+                               build_collision_scene_graph=False,
+                               load_collision_meshes=False).robot
+    links = {link.name: link for link in model.links}
+    parent_joint = {}
+    for joint in model.joints:
+        if joint.child in parent_joint:
+            raise ValueError(
+                f"Link {joint.child!r} is the child of two joints ({parent_joint[joint.child].name!r} "
+                f"and {joint.name!r}): the file describes a closed loop, which a tree of joints "
+                "cannot express. Import the tree without one of them and close the loop with a "
+                "constraint."
+            )
+        if joint.parent not in links or joint.child not in links:
+            raise ValueError(f"Joint {joint.name!r} connects links that are not in the file.")
+        parent_joint[joint.child] = joint
+    roots = [name for name in links if name not in parent_joint]
+    if len(roots) != 1:
+        raise ValueError(f"A URDF tree has one root link, this file has {roots}.")
+    children = {name: [] for name in links}
+    for joint in model.joints:  # in file order, as parsers of URDF list them
+        children[joint.parent].append(joint.child)
+
+    tree_links, values = [], {}
+    stack = [roots[0]]
+    while stack:  # depth first: parents before children
+        name = stack.pop()
+        stack.extend(reversed(children[name]))
+        mass, com, inertia = _inertial(links[name])
+        values[name] = {"mass": mass, "com": com, "inertia": inertia}
+        if name == roots[0]:
+            joint, translation, rotation, parent = (Free() if floating else Fixed()), \
+                np.zeros(3), np.eye(3), None
+        else:
+            urdf_joint = parent_joint[name]
+            joint = _joint(urdf_joint)
+            origin = np.eye(4) if urdf_joint.origin is None else np.asarray(urdf_joint.origin)
+            translation, rotation, parent = origin[:3, 3], origin[:3, :3], urdf_joint.parent
+        inertial = dict(mass=LinkParameter(name, "mass"), com=LinkParameter(name, "com"),
+                        inertia=LinkParameter(name, "inertia")) if parameters else \
+            dict(mass=mass, com=tuple(com), inertia=jnp.asarray(inertia))
+        tree_links.append(Link(name, joint, parent=parent, translation=translation,
+                               rotation=rotation, **inertial))
+    p = {name: {k: jnp.asarray(v) for k, v in d.items()} for name, d in values.items()}
+    tree = RigidBodyTree(tree_links, gravity=jnp.asarray(gravity, dtype=float))
+    return tree, (p if parameters else None)
+
+
+def _inertial(link):
+    inertial = link.inertial
+    if inertial is None or inertial.mass is None:
+        return np.asarray(0.0), np.zeros(3), np.zeros((3, 3))
+    origin = np.eye(4) if inertial.origin is None else np.asarray(inertial.origin)
+    rotation = origin[:3, :3]
+    inertia = np.zeros((3, 3)) if inertial.inertia is None else np.asarray(inertial.inertia)
+    # URDF gives the inertia in the frame of <inertial><origin>; jaxdyn in the link's axes.
+    return np.asarray(float(inertial.mass)), origin[:3, 3].copy(), rotation @ inertia @ rotation.T
+
+
+def _joint(joint):
+    axis = np.array([1.0, 0.0, 0.0]) if joint.axis is None else np.asarray(joint.axis, float)
+    if joint.type in ("revolute", "continuous"):
+        return Revolute(axis)
+    if joint.type == "prismatic":
+        return Prismatic(axis)
+    if joint.type == "fixed":
+        return Fixed()
+    if joint.type == "floating":
+        return Free()
+    if joint.type == "planar":
+        if not np.allclose(axis / np.linalg.norm(axis), [0.0, 0.0, 1.0]):
+            raise ValueError(f"Planar joint {joint.name!r}: only planes normal to the joint's z "
+                             "axis are supported; rotate the joint's origin instead.")
+        return Planar()
+    raise ValueError(f"Joint {joint.name!r} has the unknown type {joint.type!r}.")
