@@ -16,7 +16,6 @@ import time
 
 import diffrax
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.integrate
 

@@ -19,7 +19,6 @@ import time
 
 import diffrax
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.integrate
 

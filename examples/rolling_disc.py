@@ -99,8 +99,8 @@ def kinematic_map(q, p):
 disc = jaxdyn.RigidBody(mass=lambda p: p["m"], inertia=inertia, position=centre,
                         orientation=orientation)
 system = jaxdyn.MultibodySystem([disc], gravity=lambda p: jnp.array([0.0, 0.0, -p["g"]]))
-gibbs_appell = system.gibbs_appell(kinematic_map)
-kane = jaxdyn.Kane(system, kinematic_map)
+gibbs_appell = jaxdyn.GibbsAppell.from_system(system, kinematic_map)
+kane = jaxdyn.Kane.from_system(system, kinematic_map)
 FORMULATIONS = {"GibbsAppell": gibbs_appell, "Kane": kane}
 
 

@@ -7,7 +7,7 @@ mass: I₁ᶜ, I₁ᶜ, I₃), so about the tip I₁ = I₁ᶜ + m h².
 
 The script
 
-1. forms the equations three ways from one `MultibodySystem` — Lagrange (`system.lagrangian()`),
+1. forms the equations three ways from one `MultibodySystem` — Lagrange (`Lagrangian.from_system`),
    Gibbs–Appell and Kane (speeds u = q̇) — and compares their accelerations with each other and
    with the closed-form equations of the heavy symmetric top,
 
@@ -60,9 +60,9 @@ top = jaxdyn.RigidBody(mass=lambda p: p["m"], inertia=inertia, position=position
                        orientation=orientation)
 system = jaxdyn.MultibodySystem([top], gravity=lambda p: jnp.array([0.0, 0.0, -p["g"]]))
 FORMULATIONS = {
-    "Lagrangian": system.lagrangian(),
-    "GibbsAppell": system.gibbs_appell(),
-    "Kane": jaxdyn.Kane(system),
+    "Lagrangian": jaxdyn.Lagrangian.from_system(system),
+    "GibbsAppell": jaxdyn.GibbsAppell.from_system(system),
+    "Kane": jaxdyn.Kane.from_system(system),
 }
 
 

@@ -88,9 +88,9 @@ def main():
     p = dict(M=2.0, R=0.3, m=0.7, l=0.9, k=25.0)
     system = build()
     formulations = {"Lagrangian(T, V)": jaxdyn.Lagrangian(kinetic, potential),
-                    "bodies: Lagrange": system.lagrangian(),
-                    "bodies: Gibbs–Appell": system.gibbs_appell(),
-                    "bodies: Kane": jaxdyn.Kane(system)}
+                    "bodies: Lagrange": jaxdyn.Lagrangian.from_system(system),
+                    "bodies: Gibbs–Appell": jaxdyn.GibbsAppell.from_system(system),
+                    "bodies: Kane": jaxdyn.Kane.from_system(system)}
     print("25.3 rolling disc, spring and hinged rod: accelerations (ẍ, φ̈)")
     for q, qd in [([0.1, 0.5], [0.2, -1.0]), ([-0.3, 2.0], [1.5, 3.0])]:
         q, qd = jnp.array(q), jnp.array(qd)

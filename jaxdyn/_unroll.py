@@ -33,12 +33,17 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex
 
-# Programs whose arrays hold more elements than this in total (summed over every intermediate)
+# Programs whose unrolled form has more scalar operations than this (after constant folding)
 # run as written. Beyond it XLA no longer keeps the scalar program in a few kernels: it splits
 # the graph at every value with many users (an LDLᵀ of 10 × 10 becomes ~70 kernels), and compile
-# time grows; array operations are then as fast (benchmarks/bench_equations.py; a chain of 8
-# rods is about 3700 elements).
-MAX_ELEMENTS = 4000
+# time grows; array operations are then as fast (benchmarks/bench_equations.py and
+# bench_trees.py: Lagrange's equations of a chain of 8 rods, about 2000 operations, and the
+# articulated-body algorithm on 8 links, about 1700, run as fast either way).
+MAX_ELEMENTS = 2000
+# Programs whose arrays hold more elements than this in total (summed over every intermediate,
+# before folding) are not tried: the interpreter's Python time (about 1 s per 100 000 elements).
+# Spatial (6 × 6) algebra of small trees folds to a small fraction of its size.
+MAX_TRIED = 40_000
 # Programs analysed for their structure (`structure`), which emits nothing: Python time alone,
 # about 0.1 s for the equations of a 20-link chain.
 MAX_ANALYSED = 200_000
@@ -79,8 +84,21 @@ class Symbol:
 _ANALYSIS = contextvars.ContextVar("jaxdyn_structure_analysis", default=False)
 
 
+_BUDGET = contextvars.ContextVar("jaxdyn_unroll_budget", default=None)
+
+
+def _spend(count):
+    """Count `count` emitted scalar operations against the budget of `evaluate`."""
+    budget = _BUDGET.get()
+    if budget is not None:
+        budget[0] -= count
+        if budget[0] < 0:
+            raise _Fallback
+
+
 def _emit(primitive, xs, dtypes, params):
     """Bind `primitive` on elements, or (in a structure analysis) the symbol it would give."""
+    _spend(1)
     if _ANALYSIS.get():
         return Symbol(frozenset().union(*(x.depends for x in xs if isinstance(x, Symbol))))
     return primitive.bind(*[_lift(x, d) for x, d in zip(xs, dtypes)], **params)
@@ -139,21 +157,34 @@ def fits(fn, *args, max_elements: int | None = None) -> bool:
     """Whether `unrolled(fn, *args)` would evaluate ``fn`` as straight-line scalar code."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
     closed = jax.make_jaxpr(lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)))(*leaves)
-    jaxpr = _dead_code_eliminated(closed.jaxpr)
     limit = MAX_ELEMENTS if max_elements is None else max_elements
-    return not jaxpr.effects and _size(jaxpr) <= limit
+    try:
+        evaluate(closed, leaves, limit, emit=False)
+    except _Fallback:
+        return False
+    return True
 
 
-def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int):
+def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = True):
     """Evaluate a closed jaxpr element by element; returns object arrays of scalars.
 
-    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value.
-    Raises `_Fallback` when the program is over budget or has side effects.
+    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value (with
+    `emit=False`, a `Symbol`: only the count is wanted). Raises `_Fallback` when the program
+    has side effects, is too large to try, or emits more than `max_elements` operations.
     """
     jaxpr = _dead_code_eliminated(closed.jaxpr)
-    if jaxpr.effects or _size(jaxpr) > max_elements:
+    if jaxpr.effects or _size(jaxpr) > max(MAX_TRIED, max_elements):
         raise _Fallback
-    return _eval(jaxpr, closed.consts, [split(x) for x in leaves])
+    budget = _BUDGET.set([max_elements])
+    analysis = _ANALYSIS.set(True) if not emit else None
+    try:
+        if not emit:
+            leaves = [_symbols_like(x, "input") for x in leaves]  # as if traced
+        return _eval(jaxpr, closed.consts, [split(x) for x in leaves])
+    finally:
+        _BUDGET.reset(budget)
+        if analysis is not None:
+            _ANALYSIS.reset(analysis)
 
 
 def split(x) -> np.ndarray:
@@ -287,6 +318,7 @@ def _apply(eqn, ins):
 
 def _on_arrays(eqn, ins):
     """Evaluate one equation on whole arrays (no element-wise rule)."""
+    _spend(sum(math.prod(v.aval.shape) for v in eqn.outvars))
     if _ANALYSIS.get():  # every output element may depend on every input element
         depends = frozenset().union(*(e.depends for x in ins for e in x.ravel()
                                       if isinstance(e, Symbol)))
@@ -329,13 +361,16 @@ def _scalar(primitive, name, params, xs, dtypes, out_dtype):
 def _fold(primitive, name, params, xs, dtypes, out_dtype):
     """A constant operation, evaluated at trace time."""
     if name in _EXACT:
-        return _constant(_EXACT[name](*xs), out_dtype)
+        # IEEE semantics as XLA would compute them (0·inf = NaN is a result, not a warning).
+        with np.errstate(all="ignore"):
+            return _constant(_EXACT[name](*xs), out_dtype)
     if name == "convert_element_type":
         return _constant(xs[0], out_dtype)
     if name == "select_n":
         return _constant(xs[1 + int(xs[0])], out_dtype)
     if name == "integer_pow":
-        return _constant(xs[0] ** params["y"], out_dtype)
+        with np.errstate(all="ignore"):
+            return _constant(xs[0] ** params["y"], out_dtype)
     with jax.ensure_compile_time_eval():
         value = primitive.bind(*[jnp.asarray(x, d) for x, d in zip(xs, dtypes)], **params)
     return _constant(np.asarray(value), out_dtype)
@@ -403,6 +438,7 @@ def _combine(primitive, fold):
     def combine(a, b):
         if is_constant(a) and is_constant(b):
             return _constant(fold(a, b), np.result_type(a, b))
+        _spend(1)
         if _ANALYSIS.get():
             return Symbol(frozenset().union(*(x.depends for x in (a, b)
                                               if isinstance(x, Symbol))))

@@ -82,8 +82,14 @@ def test_programs_over_budget_run_as_written():
     assert any(e.primitive.name == "dot_general" for e in jaxpr.jaxpr.eqns)
     assert_close(unrolled(fn, x, max_elements=10), fn(x), rtol=1e-15)
     called = []
-    unrolled(fn, x, max_elements=10, otherwise=lambda x: called.append(True) or fn(x))
+    jax.make_jaxpr(lambda x: unrolled(fn, x, max_elements=10,
+                                      otherwise=lambda x: called.append(True) or fn(x)))(x)
     assert called
+    # The budget counts the operations left after constant folding: a constant input folds
+    # the whole program, which then fits.
+    called.clear()
+    unrolled(fn, x, max_elements=10, otherwise=lambda x: called.append(True) or fn(x))
+    assert not called
 
 
 def _pattern(elements):

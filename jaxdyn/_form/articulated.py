@@ -82,7 +82,7 @@ class ArticulatedBody(AbstractDynamics):
 
     def _check(self, t, q, u):
         q, u = check_vector(q, "q"), check_vector(u, "u")
-        self.tree.kinematic_matrix(t, q, None, None, u)  # checks the shapes
+        self.tree._check_state(q, u)
         return jnp.asarray(t, q.dtype), q, u
 
     def coordinate_rates(self, t, q, u, p=None):
@@ -138,7 +138,6 @@ def articulated_body_algorithm(tree, t, q, u, p):
     _, transpose = jax.vjp(lambda u: tree.coordinate_rates(t, q, u, p), u)
     tau = tree.joint_forces(t, q, u, p) + transpose(elastic)[0]
     tau_links = jnp.zeros((n, width), dtype).at[link_of, column_of].set(tau)
-    u_links = jnp.zeros((n, width), dtype).at[link_of, column_of].set(u)
 
     rotation, origin, omega_j, velocity_j = tree.joint_motion(q, u)
     transforms = motion_transform(rotation, origin)
@@ -146,7 +145,6 @@ def articulated_body_algorithm(tree, t, q, u, p):
     inertia6 = spatial_inertia(masses, coms, inertias)
     moments, forces = tree.load_wrenches(t, q, u, p)
     joint_velocity = jnp.concatenate([omega_j, velocity_j], -1)
-    del u_links
 
     # 1. velocities outwards
     def outwards(parent, link):
@@ -167,17 +165,19 @@ def articulated_body_algorithm(tree, t, q, u, p):
         x, own_inertia, own_bias, s, pad, torque, c = link
         articulated = own_inertia + inertia_c
         articulated_bias = own_bias + bias_c
-        u_matrix = articulated @ s  # U = I^A S
-        d = jnp.swapaxes(s, -1, -2) @ u_matrix + jnp.diag(pad)
+        u_matrix = spatial.matmul(articulated, s)  # U = I^A S
+        st = jnp.swapaxes(s, -1, -2)
+        d = spatial.matmul(st, u_matrix) + jnp.diag(pad)
         lower, pivots = ldl(d)
         reciprocals = 1 / pivots
-        residual = torque - jnp.swapaxes(s, -1, -2) @ articulated_bias
-        d_inv_ut = jnp.stack([ldl_solve(lower, reciprocals, row)
-                              for row in u_matrix], axis=0)  # (D⁻¹ Uᵀ)ᵀ = U D⁻¹, rows of U
+        residual = torque - _matvec6(st, articulated_bias)
+        d_inv_ut = ldl_solve(lower, reciprocals, u_matrix)  # U D⁻¹ (D symmetric), row-wise
         d_inv_residual = ldl_solve(lower, reciprocals, residual)
-        reduced = articulated - d_inv_ut @ jnp.swapaxes(u_matrix, -1, -2)
-        reduced_bias = articulated_bias + reduced @ c + u_matrix @ d_inv_residual
-        up = (jnp.swapaxes(x, -1, -2) @ reduced @ x, jnp.swapaxes(x, -1, -2) @ reduced_bias)
+        reduced = articulated - spatial.matmul(d_inv_ut, jnp.swapaxes(u_matrix, -1, -2))
+        reduced_bias = (articulated_bias + _matvec6(reduced, c)
+                        + _matvec6(u_matrix, d_inv_residual))
+        xt = jnp.swapaxes(x, -1, -2)
+        up = (spatial.matmul(xt, spatial.matmul(reduced, x)), _matvec6(xt, reduced_bias))
         scale = jnp.max(jnp.abs(jnp.diagonal(d)) * (1 - pad)) + jnp.finfo(dtype).tiny
         failed = jnp.any((pivots <= width * jnp.finfo(dtype).eps * scale) & (pad == 0))
         return (u_matrix, d_inv_ut, d_inv_residual, failed), up
@@ -192,8 +192,8 @@ def articulated_body_algorithm(tree, t, q, u, p):
         parent_acceleration, _ = parent
         x, c, s, u_matrix, ud_inv, d_inv_residual = link
         acceleration = _matvec6(x, parent_acceleration) + c
-        udot = d_inv_residual - jnp.swapaxes(ud_inv, -1, -2) @ acceleration
-        return acceleration + s @ udot, udot
+        udot = d_inv_residual - _matvec6(jnp.swapaxes(ud_inv, -1, -2), acceleration)
+        return acceleration + _matvec6(s, udot), udot
 
     gravity = tree.gravity_vector(p, dtype)
     world = (jnp.concatenate([jnp.zeros(3, dtype), -gravity]), jnp.zeros(width, dtype))

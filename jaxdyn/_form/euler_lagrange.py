@@ -132,8 +132,11 @@ class Lagrangian(AbstractDynamics):
         return u
 
     def user_functions(self, t, q, qd, p=None):
-        """(L, Q − ∂D/∂q̇) at one state."""
+        """(L, Q − ∂D/∂q̇) at one state; from a description, the description's callbacks."""
         t, q, qd = self._check(t, q, qd)
+        if isinstance(self.kinetic, _SystemQuantity):
+            system = self.kinetic.system
+            return system.user_functions(t, q, system.speeds_from_rates(t, q, qd, p), p)
         return self._lagrangian(t, q, qd, p), self._nonconservative(t, q, qd, p)
 
     def form_accelerations(self, t, q, qd, p=None, *, small):

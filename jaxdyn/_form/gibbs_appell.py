@@ -106,8 +106,10 @@ class GibbsAppell(AbstractDynamics):
                            ACTIVE_ARGS, t, q, u, p), "active forces Π", u.shape)
 
     def user_functions(self, t, q, u, p=None):
-        """(S at u̇ = 0, Π, q̇) at one state."""
+        """(S at u̇ = 0, Π, q̇) at one state; from a description, the description's callbacks."""
         t, q, u = self._check(t, q, u, p)
+        if self.system is not None:
+            return self.system.user_functions(t, q, u, p, self.kinematic_map)
         return (self._gibbs(t, q, u, jnp.zeros_like(u), p), self._active_forces(t, q, u, p),
                 self.coordinate_rates(t, q, u, p))
 

@@ -64,6 +64,11 @@ class AbstractJoint(eqx.Module):
         )
 
 
+def _along(axis, x):
+    """x (…, 1) times a constant axis (3,): (…, 3)."""
+    return x * jnp.broadcast_to(jnp.asarray(axis, x.dtype), x.shape[:-1] + (3,))
+
+
 def _unit(axis):
     """A unit axis as a tuple of floats: static, so that a joint's structure (say, rotation
     about z) is known at trace time and its zeros fold away."""
@@ -74,63 +79,50 @@ def _unit(axis):
     return tuple(float(a) for a in axis / norm)
 
 
-class Revolute(AbstractJoint):
-    """Rotation by an angle θ about `axis` (a unit vector in the joint frame; normalised)."""
+class _AlongAxis(AbstractJoint):
+    """A joint with one coordinate along or about a unit `axis`, its rate the speed."""
 
     axis: tuple[float, float, float] = eqx.field(static=True, converter=_unit,
                                                  default=(0.0, 0.0, 1.0))
     nq: ClassVar[int] = 1
     nv: ClassVar[int] = 1
 
+    def rate_matrix(self, q):
+        return jnp.ones(q.shape[:-1] + (1, 1), q.dtype)
+
+    def neutral(self):
+        return np.zeros(1)
+
+    def speeds(self, q, qd):
+        return qd
+
+
+class Revolute(_AlongAxis):
+    """Rotation by an angle θ about `axis` (a unit vector in the joint frame; normalised)."""
+
     def transform(self, q):
         axis = jnp.asarray(self.axis, q.dtype)
-        return spatial.axis_rotation(axis, q[..., 0]), jnp.zeros_like(axis * q)
+        return spatial.axis_rotation(axis, q[..., 0]), jnp.zeros(q.shape[:-1] + (3,), q.dtype)
 
     def twist(self, u):
-        axis = jnp.asarray(self.axis, u.dtype)
-        return axis * u, jnp.zeros_like(axis * u)
+        return _along(self.axis, u), jnp.zeros(u.shape[:-1] + (3,), u.dtype)
 
     def subspace(self):
         return np.concatenate([self.axis, np.zeros(3)])[:, None]
 
-    def rate_matrix(self, q):
-        return jnp.ones(q.shape[:-1] + (1, 1), q.dtype)
 
-    def neutral(self):
-        return np.zeros(1)
-
-    def speeds(self, q, qd):
-        return qd
-
-
-class Prismatic(AbstractJoint):
+class Prismatic(_AlongAxis):
     """Translation by a distance s along `axis` (a unit vector in the joint frame)."""
 
-    axis: tuple[float, float, float] = eqx.field(static=True, converter=_unit,
-                                                 default=(0.0, 0.0, 1.0))
-    nq: ClassVar[int] = 1
-    nv: ClassVar[int] = 1
-
     def transform(self, q):
-        axis = jnp.asarray(self.axis, q.dtype)
         rotation = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape[:-1] + (3, 3))
-        return rotation, axis * q
+        return rotation, _along(self.axis, q)
 
     def twist(self, u):
-        axis = jnp.asarray(self.axis, u.dtype)
-        return jnp.zeros_like(axis * u), axis * u
+        return jnp.zeros(u.shape[:-1] + (3,), u.dtype), _along(self.axis, u)
 
     def subspace(self):
         return np.concatenate([np.zeros(3), self.axis])[:, None]
-
-    def rate_matrix(self, q):
-        return jnp.ones(q.shape[:-1] + (1, 1), q.dtype)
-
-    def neutral(self):
-        return np.zeros(1)
-
-    def speeds(self, q, qd):
-        return qd
 
 
 class Spherical(AbstractJoint):
@@ -164,7 +156,7 @@ class Planar(AbstractJoint):
     nv: ClassVar[int] = 3
 
     def transform(self, q):
-        rotation = spatial.axis_rotation(jnp.array([0.0, 0.0, 1.0], q.dtype), q[..., 2])
+        rotation = spatial.axis_rotation(jnp.array([0.0, 0.0, 1.0], dtype=q.dtype), q[..., 2])
         return rotation, jnp.stack([q[..., 0], q[..., 1], jnp.zeros_like(q[..., 0])], -1)
 
     def twist(self, u):
@@ -213,10 +205,12 @@ class Free(AbstractJoint):
         return s
 
     def rate_matrix(self, q):
-        rotation = spatial.quaternion_rotation(q[..., 3:])
+        rotation = spatial.quaternion_rotation(q[..., 3:])  # ṙ = R v
         rates = spatial.quaternion_rate_matrix(q[..., 3:])
-        k = jnp.zeros(q.shape[:-1] + (7, 6), q.dtype)
-        return k.at[..., :3, :3].set(rotation).at[..., 3:, 3:].set(rates)
+        zeros = jnp.zeros(q.shape[:-1] + (3, 3), q.dtype)
+        return jnp.concatenate([jnp.concatenate([rotation, zeros], -1),
+                                jnp.concatenate([zeros[..., :1, :].repeat(4, -2), rates], -1)],
+                               -2)
 
     def neutral(self):
         return np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])

@@ -24,6 +24,7 @@ def cross(a, b):
 
 
 def dot(a, b):
+    a, b = jnp.broadcast_arrays(a, b)
     return jnp.sum(a * b, axis=-1)
 
 
@@ -42,19 +43,24 @@ def matmul(a, b):
 
 
 def axis_rotation(axis, angle):
-    """R = exp(angle [axis]×) for a unit axis (Rodrigues' formula)."""
+    """R = exp(angle [axis]×) for a unit axis (Rodrigues' formula); `axis` (3,) or batched
+    like `angle`."""
+    axis = jnp.broadcast_to(axis, jnp.shape(angle) + (3,))
     c, s = jnp.cos(angle)[..., None, None], jnp.sin(angle)[..., None, None]
     x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
     zero = jnp.zeros_like(x)
     skew = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1),
                       jnp.stack([-y, x, zero], -1)], -2)
     outer = axis[..., :, None] * axis[..., None, :]
-    return c * jnp.eye(3, dtype=skew.dtype) + s * skew + (1 - c) * outer
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=skew.dtype), skew.shape)
+    return c * eye + s * skew + (1 - c) * outer
 
 
 def quaternion_rotation(quaternion):
-    """R from a unit quaternion (w, x, y, z) (not normalised here: the coordinate is kept unit
-    by its kinematics, and normalising would add a stiff direction the solver does not need)."""
+    """R from a quaternion (w, x, y, z), normalised first: its kinematics q̇ = ½ q ⊗ (0, ω)
+    keep it unit only up to the solver's tolerance, and every formulation then sees the same
+    exact rotation (the scale is a direction the dynamics does not depend on)."""
+    quaternion = quaternion / jnp.sqrt(jnp.sum(quaternion**2, axis=-1, keepdims=True))
     w, x, y, z = (quaternion[..., i] for i in range(4))
     return jnp.stack([
         jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),

@@ -30,7 +30,7 @@ from .joints import AbstractJoint
 
 # Trees with more links than this run their recursions as a `lax.scan` (compile time
 # independent of the number of links); smaller ones as a Python loop (straight-line code).
-LOOP_MAX = 12
+LOOP_MAX = 24
 
 JOINT_ARGS = ("q", "u", "p")
 
@@ -53,6 +53,24 @@ def _rotation(x):
 
 def _value(x, p):
     return jnp.asarray(x(p) if callable(x) else x)
+
+
+def _buffer(template, parents):
+    """`template` repeated for every link and the world (last), and each link's parent's slot:
+    the state of a recursion over a general tree, indexed by link inside a scan."""
+    n = len(parents)
+    buffer = jax.tree_util.tree_map(
+        lambda x: jnp.broadcast_to(x, (n + 1,) + jnp.shape(x)).astype(jnp.result_type(x)),
+        template)
+    return buffer, np.array([n if parent < 0 else parent for parent in parents])
+
+
+def _get(buffer, i):
+    return jax.lax.dynamic_index_in_dim(buffer, i, keepdims=False)
+
+
+def _set(buffer, i, value):
+    return jax.lax.dynamic_update_index_in_dim(buffer, value.astype(buffer.dtype), i, 0)
 
 
 class Link(eqx.Module):
@@ -252,14 +270,17 @@ class RigidBodyTree(AbstractMultibody):
             if u is not None:
                 twists.append(joint.twist(u[u_index]))
         rotation_j, translation_j = self._by_link(poses, q.dtype)
-        rotations_t = jnp.asarray(rotations_t, q.dtype)
+        rotations_t = jnp.asarray(rotations_t, dtype=q.dtype)
         rotation = spatial.matmul(rotations_t, rotation_j)
-        translation = jnp.asarray(translations_t, q.dtype) + spatial.matvec(rotations_t,
-                                                                           translation_j)
+        translation = jnp.asarray(translations_t, dtype=q.dtype) + spatial.matvec(
+            rotations_t, translation_j)
         if u is None:
             return rotation, translation
         omega_j, velocity_j = self._by_link(twists, q.dtype)
         return rotation, translation, omega_j, velocity_j
+
+    def _is_chain(self):
+        return all(parent == i - 1 for i, parent in enumerate(self.parents))
 
     def forward(self, step, root, per_link):
         """The parent-to-child recursion: state_i = step(state of parent(i), per_link[i]), with
@@ -272,19 +293,20 @@ class RigidBodyTree(AbstractMultibody):
                 previous = root if parent < 0 else states[parent]
                 states.append(step(previous, jax.tree_util.tree_map(lambda x: x[i], per_link)))
             return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
-        # The world's state in the last slot of a buffer indexed by link.
-        buffer = jax.tree_util.tree_map(
-            lambda r: jnp.broadcast_to(r, (n + 1,) + jnp.shape(r)).astype(jnp.result_type(r)),
-            root)
-        parent_index = np.array([n if parent < 0 else parent for parent in parents], np.int32)
+        if self._is_chain():  # the carry is the parent's state: no buffer to index
+            def chain_body(previous, data):
+                state = step(previous, data)
+                return state, state
+
+            return jax.lax.scan(chain_body, root, per_link)[1]
+        buffer, parent_index = _buffer(root, parents)  # the world in the last slot
 
         def body(buffer, xs):
             i, parent, data = xs
-            state = step(jax.tree_util.tree_map(lambda b: b[parent], buffer), data)
-            return jax.tree_util.tree_map(lambda b, s: b.at[i].set(s), buffer, state), None
+            state = step(jax.tree_util.tree_map(lambda b: _get(b, parent), buffer), data)
+            return jax.tree_util.tree_map(lambda b, s: _set(b, i, s), buffer, state), None
 
-        buffer, _ = jax.lax.scan(body, buffer, (np.arange(n, dtype=np.int32), parent_index,
-                                                per_link))
+        buffer, _ = jax.lax.scan(body, buffer, (np.arange(n), parent_index, per_link))
         return jax.tree_util.tree_map(lambda b: b[:n], buffer)
 
     def backward(self, step, zero, per_link):
@@ -303,19 +325,24 @@ class RigidBodyTree(AbstractMultibody):
                 accumulated[target] = jax.tree_util.tree_map(jnp.add, accumulated[target], up)
             stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *outputs)
             return stacked, accumulated[n]
-        buffer = jax.tree_util.tree_map(
-            lambda z: jnp.broadcast_to(z, (n + 1,) + jnp.shape(z)).astype(jnp.result_type(z)),
-            zero)
-        parent_index = np.array([n if parent < 0 else parent for parent in parents], np.int32)
+        if self._is_chain():  # the carry is what the child passes up
+            def chain_body(accumulated, data):
+                out, up = step(accumulated, data)
+                return jax.tree_util.tree_map(jnp.add, zero, up), out
+
+            up, outputs = jax.lax.scan(chain_body, zero, per_link, reverse=True)
+            return outputs, up
+        buffer, parent_index = _buffer(zero, parents)  # the world in the last slot
 
         def body(buffer, xs):
             i, parent, data = xs
-            out, up = step(jax.tree_util.tree_map(lambda b: b[i], buffer), data)
-            buffer = jax.tree_util.tree_map(lambda b, x: b.at[parent].add(x), buffer, up)
+            out, up = step(jax.tree_util.tree_map(lambda b: _get(b, i), buffer), data)
+            buffer = jax.tree_util.tree_map(lambda b, x: _set(b, parent, _get(b, parent) + x),
+                                            buffer, up)
             return buffer, out
 
         buffer, outputs = jax.lax.scan(
-            body, buffer, (np.arange(n, dtype=np.int32), parent_index, per_link), reverse=True)
+            body, buffer, (np.arange(n), parent_index, per_link), reverse=True)
         return outputs, jax.tree_util.tree_map(lambda b: b[n], buffer)
 
     def link_states(self, t, q, u, p):
@@ -369,25 +396,22 @@ class RigidBodyTree(AbstractMultibody):
         return masses.astype(dtype), coms, inertias
 
     def kinematic_matrix(self, t, q, p, kinematic_map=None, u=None):
-        if kinematic_map is not None:
-            raise ValueError("A RigidBodyTree's speeds are its joints' own: pass no "
-                             "kinematic_map.")
-        self._check_state(q, u)
-        n, m = self.num_coordinates, self.num_speeds
-        k = jnp.zeros((n, m), q.dtype)
+        self._check_state(q, u, kinematic_map)
+        m = self.num_speeds
         q_slices, u_slices = self.coordinate_slices(), self.speed_slices()
+        rows = []  # block-diagonal: each joint's K in its rows and columns
         for link in self.links:
             if link.joint.nq:
                 qs, us = q_slices[link.name], u_slices[link.name]
-                k = k.at[qs, us].set(link.joint.rate_matrix(q[qs]))
-        return k
+                block = link.joint.rate_matrix(q[qs])
+                rows.append(jnp.concatenate([  # NumPy zeros: constants, nothing to evaluate
+                    np.zeros((link.joint.nq, us.start), q.dtype), block,
+                    np.zeros((link.joint.nq, m - us.stop), q.dtype)], axis=1))
+        return jnp.concatenate(rows) if rows else jnp.zeros((0, m), q.dtype)
 
     def coordinate_rates(self, t, q, u, p, kinematic_map=None):
         """q̇ = K(q) u, joint by joint."""
-        if kinematic_map is not None:
-            raise ValueError("A RigidBodyTree's speeds are its joints' own: pass no "
-                             "kinematic_map.")
-        self._check_state(q, u)
+        self._check_state(q, u, kinematic_map)
         q_slices, u_slices = self.coordinate_slices(), self.speed_slices()
         pieces = []
         for link in self.links:
@@ -396,7 +420,10 @@ class RigidBodyTree(AbstractMultibody):
                 pieces.append(link.joint.rate_matrix(q[qs]) @ u[us])
         return jnp.concatenate(pieces) if pieces else jnp.zeros(0, q.dtype)
 
-    def _check_state(self, q, u):
+    def _check_state(self, q, u, kinematic_map=None):
+        if kinematic_map is not None:
+            raise ValueError("A RigidBodyTree's speeds are its joints' own: pass no "
+                             "kinematic_map.")
         if q.shape != (self.num_coordinates,):
             raise ValueError(f"This tree has {self.num_coordinates} coordinates (its joints'), "
                              f"but q has shape {q.shape}.")
@@ -416,7 +443,7 @@ class RigidBodyTree(AbstractMultibody):
         return masses, inertias
 
     def body_velocities(self, t, q, u, p, kinematic_map=None):
-        self.kinematic_matrix(t, q, p, kinematic_map, u)  # checks the shapes
+        self._check_state(q, u, kinematic_map)
         rotations, _, omega, velocity = self.link_states(t, q, u, p)
         _, coms, _ = self.link_inertias(p, q.dtype)
         return spatial.matvec(rotations, velocity + spatial.cross(omega, coms)), omega
@@ -467,11 +494,11 @@ class RigidBodyTree(AbstractMultibody):
             names = JOINT_ARGS if not self.time_dependent else ("t", *JOINT_ARGS)
             total = total + vector(call(self.forces, "generalized forces", False, names, None,
                                         *args), "generalized forces", u.shape)
-        u_slices = self.speed_slices()
-        for link in self.links:
-            if link.damping is not None:
-                us = u_slices[link.name]
-                total = total.at[us].add(-_value(link.damping, p) * u[us])
+        if any(link.damping is not None for link in self.links):
+            u_slices = self.speed_slices()
+            total = total + jnp.concatenate([
+                -_value(link.damping, p) * u[u_slices[link.name]] if link.damping is not None
+                else jnp.zeros(link.joint.nv, u.dtype) for link in self.links])
         return total
 
     def load_wrenches(self, t, q, u, p):
@@ -506,7 +533,7 @@ class RigidBodyTree(AbstractMultibody):
     def applied_forces(self, t, q, u, p, kinematic_map=None):
         """Π: joint forces and dampers, and the loads' virtual work Σ J_iᵀ (n_i, f_i) (one VJP
         of the links' velocities)."""
-        self.kinematic_matrix(t, q, p, kinematic_map, u)  # checks the shapes
+        self._check_state(q, u, kinematic_map)
         total = self.joint_forces(t, q, u, p)
         if self.loads:
             moments, forces = self.load_wrenches(t, q, u, p)
@@ -519,5 +546,13 @@ class RigidBodyTree(AbstractMultibody):
         return total
 
     def user_functions(self, t, q, u, p, kinematic_map=None):
-        return (self.potential_energy(t, q, p), self.applied_forces(t, q, u, p, kinematic_map),
-                self.link_inertias(p, q.dtype))
+        """The user's callables alone (energies, forces, loads, gravity, inertial parameters):
+        the recursive kinematics is the library's and needs no check."""
+        self._check_state(q, u, kinematic_map)
+        args = (q, u, p) if not self.time_dependent else (t, q, u, p)
+        names = JOINT_ARGS if not self.time_dependent else ("t", *JOINT_ARGS)
+        loads = [(self._load_vector(load.force, "LinkLoad force", names, args, q.dtype),
+                  self._load_vector(load.torque, "LinkLoad torque", names, args, q.dtype))
+                 for load in self.loads]
+        return (self.elastic_energy(t, q, p), self.joint_forces(t, q, u, p), loads,
+                self.gravity_vector(p, q.dtype), self.link_inertias(p, q.dtype))

@@ -25,7 +25,7 @@ class LinkParameter(eqx.Module):
 
 
 def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
-              parameters: bool = True):
+              parameters: bool = True, damping: bool = True):
     """Load a URDF robot model.
 
     **Arguments:**
@@ -38,9 +38,13 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
     - `parameters`: if True (the default) every link's mass, centre of mass and inertia are
       read from the parameters p, so that they can be fitted, and the values in the file are
       returned as p; if False they are constants of the tree and p is None.
+    - `damping`: if True (the default) a joint's viscous damping `<dynamics damping="c">`
+      becomes a damper −c q̇ on it (a parameter "damping" of the link it moves, with
+      `parameters`); Coulomb `friction` is not imported (it is not smooth). Pinocchio's
+      `aba` ignores both: compare with it using `damping=False`.
 
-    **Returns:** (tree, p), with p = {link name: {"mass", "com", "inertia"}} (inertia about the
-    centre of mass, in link axes).
+    **Returns:** (tree, p), with p = {link name: {"mass", "com", "inertia"[, "damping"]}}
+    (inertia about the centre of mass, in link axes).
 
     Joints: revolute and continuous → `Revolute` (an angle), prismatic → `Prismatic`, fixed →
     `Fixed`, floating → `Free`, planar (about the joint's z axis) → `Planar`.
@@ -87,9 +91,13 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
             joint = _joint(urdf_joint)
             origin = np.eye(4) if urdf_joint.origin is None else np.asarray(urdf_joint.origin)
             translation, rotation, parent = origin[:3, 3], origin[:3, :3], urdf_joint.parent
-        inertial = dict(mass=LinkParameter(name, "mass"), com=LinkParameter(name, "com"),
-                        inertia=LinkParameter(name, "inertia")) if parameters else \
-            dict(mass=mass, com=tuple(com), inertia=jnp.asarray(inertia))
+            dynamics = urdf_joint.dynamics
+            if damping and joint.nv == 1 and dynamics is not None and dynamics.damping:
+                values[name]["damping"] = np.asarray(float(dynamics.damping))
+        inertial = {k: LinkParameter(name, k) if parameters else v
+                    for k, v in values[name].items()}
+        if not parameters:
+            inertial.update(com=tuple(com), inertia=jnp.asarray(inertia))
         tree_links.append(Link(name, joint, parent=parent, translation=translation,
                                rotation=rotation, **inertial))
     p = {name: {k: jnp.asarray(v) for k, v in d.items()} for name, d in values.items()}

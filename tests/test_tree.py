@@ -1,0 +1,413 @@
+"""Trees of joints (`RigidBodyTree`) and the articulated-body algorithm.
+
+Oracles: Pinocchio (C++ rigid-body dynamics) on robot models of the `example-robot-data`
+package — a 7-dof arm with a gripper (Panda), a quadruped on a free-floating base (Solo-12) and
+a humanoid with 44 joints on a free-floating base (Talos); the N-link chain's equations written
+by hand; Euler's equations for a free body; closed forms for springs, dampers and loads;
+conservation of energy and momentum; finite differences for gradients.
+"""
+
+import importlib.metadata
+from xml.etree import ElementTree
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdyn
+import jaxdyn._system.tree
+
+from helpers import assert_close, central_difference_params
+
+pin = pytest.importorskip("pinocchio")
+yourdfpy = pytest.importorskip("yourdfpy")
+
+
+def _robot_file(name):
+    """A URDF of the example-robot-data package (installed with the test extras)."""
+    for f in importlib.metadata.files("example-robot-data"):
+        if str(f).endswith("/" + name):
+            return str(f.locate())
+    raise FileNotFoundError(name)
+
+
+def _formulations(tree, lagrange=True):
+    out = {"articulated body": jaxdyn.ArticulatedBody(tree),
+           "Kane": jaxdyn.Kane.from_system(tree),
+           "Gibbs-Appell": jaxdyn.GibbsAppell.from_system(tree)}
+    if lagrange:
+        out["Lagrange"] = jaxdyn.Lagrangian.from_system(tree)
+    return out
+
+
+def _pinocchio_case(name, floating, num_states=3, seed=0):
+    """The model in jaxdyn and Pinocchio, random states in both conventions, and Pinocchio's
+    M (q), bias forces C(q, v) v + g(q), and accelerations for random joint forces."""
+    path = _robot_file(name)
+    tree, p = jaxdyn.from_urdf(path, floating=floating, damping=False)  # Pinocchio has none
+    model = (pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer()) if floating
+             else pin.buildModelFromUrdf(path))
+    data = model.createData()
+    robot = yourdfpy.URDF.load(path, load_meshes=False, build_scene_graph=False,
+                               build_collision_scene_graph=False,
+                               load_collision_meshes=False).robot
+    child = {joint.name: joint.child for joint in robot.joints}
+    q_slices, u_slices = tree.coordinate_slices(), tree.speed_slices()
+    rng = np.random.default_rng(seed)
+    qs, us, taus, masses, biases, accelerations = [], [], [], [], [], []
+    permutation = np.zeros((model.nv, model.nv))  # jaxdyn's speeds → Pinocchio's
+    for _ in range(num_states):
+        q_pin = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
+        v_pin, tau_pin = rng.normal(size=model.nv), rng.normal(size=model.nv)
+        q, u, tau = (np.zeros(tree.num_coordinates), np.zeros(tree.num_speeds),
+                     np.zeros(tree.num_speeds))
+        for j in range(1, model.njoints):
+            name_j = model.names[j]
+            link = tree.links[0].name if name_j == "root_joint" else child[name_j]
+            iq, nq, iv, nv = model.idx_qs[j], model.nqs[j], model.idx_vs[j], model.nvs[j]
+            q_joint = q_pin[iq:iq + nq]
+            if name_j == "root_joint":  # Pinocchio's quaternion is (x, y, z, w)
+                q_joint = np.concatenate([q_joint[:3], q_joint[6:], q_joint[3:6]])
+            q[q_slices[link]] = q_joint
+            u[u_slices[link]], tau[u_slices[link]] = v_pin[iv:iv + nv], tau_pin[iv:iv + nv]
+            permutation[iv:iv + nv, u_slices[link]] = np.eye(nv)
+        m = pin.crba(model, data, q_pin)
+        masses.append(np.triu(m) + np.triu(m, 1).T)
+        biases.append(pin.nonLinearEffects(model, data, q_pin, v_pin).copy())
+        accelerations.append(pin.aba(model, data, q_pin, v_pin, tau_pin).copy())
+        qs.append(q)
+        us.append(u)
+        taus.append(tau)
+    driven = jaxdyn.RigidBodyTree(tree.links, gravity=tree.gravity,
+                                  forces=lambda q, u, p: p["tau"])
+    return dict(tree=tree, driven=driven, p=p, q=np.stack(qs), u=np.stack(us),
+                tau=np.stack(taus), M=np.stack(masses), bias=np.stack(biases),
+                accelerations=np.stack(accelerations), permutation=permutation)
+
+
+ROBOTS = [("panda.urdf", False), ("solo12.urdf", True), ("talos_full_v2.urdf", True)]
+
+
+@pytest.mark.parametrize("name, floating", ROBOTS)
+def test_against_pinocchio(name, floating, monkeypatch):
+    """M, the bias forces and the forward dynamics of every formulation against Pinocchio at
+    random states, to 1e-10 relative. The recursions run as scans over the links in the
+    general (buffered) form for trees, which compiles fastest; the next test runs the Panda
+    arm's articulated-body algorithm in straight-line code (the default for its size)."""
+    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 0)
+    case = _pinocchio_case(name, floating)
+    perm, p = case["permutation"], case["p"]
+    tree = case["tree"]
+    m, f = jaxdyn.ArticulatedBody(tree).mass_matrix_and_forcing(0.0, case["q"], case["u"], p)
+    m_pin = np.einsum("ij,sjk,lk->sil", perm, np.asarray(m), perm)
+    assert_close(m_pin, case["M"], rtol=0, atol=1e-10 * np.max(np.abs(case["M"])))
+    bias = -np.einsum("ij,sj->si", perm, np.asarray(f))
+    assert_close(bias, case["bias"], rtol=0, atol=1e-10 * np.max(np.abs(case["bias"])))
+    p_tau = jax.vmap(lambda tau: {**p, "tau": tau})(jnp.asarray(case["tau"]))
+    scale = np.max(np.abs(case["accelerations"]))
+    # Lagrange's equations need coordinates whose rates are the speeds: not for a floating
+    # base's quaternion.
+    formulations = _formulations(case["driven"], lagrange=not floating)
+    if name.startswith("talos"):  # one formulation per route for the largest model
+        formulations = {k: formulations[k] for k in ("articulated body", "Kane")}
+    for label, dynamics in formulations.items():
+        accelerations = jax.vmap(dynamics.accelerations)(
+            jnp.zeros(len(case["q"])), case["q"], case["u"], p_tau)
+        ours = np.einsum("ij,sj->si", perm, np.asarray(accelerations))
+        assert_close(ours, case["accelerations"], rtol=0, atol=1e-10 * scale,
+                     err_msg=f"{name}, {label}")
+
+
+def test_urdf_parameters_are_the_files_inertial_values():
+    case = _pinocchio_case("panda.urdf", False, num_states=2)
+    p_tau = jax.vmap(lambda tau: {**case["p"], "tau": tau})(jnp.asarray(case["tau"]))
+    accelerations = jax.vmap(jaxdyn.ArticulatedBody(case["driven"]).accelerations)(
+        jnp.zeros(2), case["q"], case["u"], p_tau)
+    assert_close(np.einsum("ij,sj->si", case["permutation"], np.asarray(accelerations)),
+                 case["accelerations"], rtol=0,
+                 atol=1e-10 * np.max(np.abs(case["accelerations"])))
+    path = _robot_file("panda.urdf")
+    tree, p = jaxdyn.from_urdf(path)
+    constant_tree, none = jaxdyn.from_urdf(path, parameters=False)
+    assert none is None
+    assert_close(p["panda_link1"]["mass"], 4.970684, rtol=1e-15)
+    q, u = np.linspace(-0.5, 0.5, tree.num_coordinates), np.linspace(0.3, -0.3, tree.num_speeds)
+    assert_close(jaxdyn.ArticulatedBody(tree).accelerations(0.0, q, u, p),
+                 jaxdyn.ArticulatedBody(constant_tree).accelerations(0.0, q, u, None),
+                 rtol=1e-13, atol=1e-13)
+    # <dynamics damping="c"> is a damper −c q̇ on the joint: M (u̇ − u̇ without) = −c u
+    undamped, p_undamped = jaxdyn.from_urdf(path, damping=False)
+    damping = {j.find("child").get("link"): float(j.find("dynamics").get("damping", 0.0))
+               for j in ElementTree.parse(path).getroot().iter("joint")
+               if j.find("dynamics") is not None}
+    assert damping and "damping" not in p_undamped["panda_link1"]
+    c = np.zeros(tree.num_speeds)
+    for link, rows in tree.speed_slices().items():
+        c[rows] = damping.get(link, 0.0)
+    dynamics = jaxdyn.ArticulatedBody(tree)
+    difference = (dynamics.accelerations(0.0, q, u, p)
+                  - jaxdyn.ArticulatedBody(undamped).accelerations(0.0, q, u, p_undamped))
+    assert_close(dynamics.mass_matrix(0.0, q, u, p) @ difference, -c * u, rtol=1e-12,
+                 atol=1e-13)
+
+
+def test_urdf_closed_loop_is_refused(tmp_path):
+    loop = """<robot name="loop">
+      <link name="a"/><link name="b"/><link name="c"/>
+      <joint name="ab" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>
+        <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+      <joint name="bc" type="revolute"><parent link="b"/><child link="c"/><axis xyz="0 0 1"/>
+        <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+      <joint name="ac" type="revolute"><parent link="a"/><child link="c"/><axis xyz="0 0 1"/>
+        <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+    </robot>"""
+    path = tmp_path / "loop.urdf"
+    path.write_text(loop)
+    with pytest.raises(ValueError, match="closed loop"):
+        jaxdyn.from_urdf(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# The N-link chain against its equations written by hand
+# ---------------------------------------------------------------------------------------------
+
+ROD = {"m": 1.3, "l": 0.7, "g": 9.81}
+
+
+def chain_tree(n):
+    """N uniform rods hinged end to end, swinging about z; at rest they hang along −y."""
+    inertia = jnp.diag(jnp.array([1.0, 0.0, 1.0])) * ROD["m"] * ROD["l"] ** 2 / 12
+    links = [jaxdyn.Link(f"rod{i}", jaxdyn.Revolute((0, 0, 1)),
+                         parent=None if i == 0 else f"rod{i - 1}",
+                         translation=(0.0, 0.0 if i == 0 else -ROD["l"], 0.0),
+                         mass=ROD["m"], com=(0.0, -ROD["l"] / 2, 0.0), inertia=inertia)
+             for i in range(n)]
+    return jaxdyn.RigidBodyTree(links, gravity=jnp.array([0.0, -ROD["g"], 0.0]))
+
+
+def chain_by_hand(theta, omega):
+    """Absolute angles θ from the downward vertical: M_ij = a_ij cos(θ_i − θ_j) + δ_ij m l²/12,
+    a = m l² CᵀC with C_ki = 1 (i < k), ½ (i = k); θ̈ = M⁻¹ f."""
+    n = len(theta)
+    m, l, g = ROD["m"], ROD["l"], ROD["g"]
+    index = np.arange(n)
+    c = np.where(index[None, :] < index[:, None], 1.0, 0.0) + 0.5 * np.eye(n)
+    a = m * l**2 * c.T @ c
+    diff = theta[:, None] - theta[None, :]
+    mass = a * np.cos(diff) + np.eye(n) * m * l**2 / 12
+    forcing = -(a * np.sin(diff)) @ omega**2 - m * g * l * c.sum(axis=0) * np.sin(theta)
+    return np.linalg.solve(mass, forcing)
+
+
+@pytest.mark.parametrize("n", [3, 20])
+def test_chain_against_hand_written_equations(n, monkeypatch):
+    """Relative joint angles q: θ = cumsum(q), θ̈ = cumsum(q̈). N = 3 runs the recursions as a
+    Python loop, N = 20 as a scan (the form for chains: the carry is the parent's state); and
+    the scan once more for N = 3 (LOOP_MAX lowered)."""
+    if n > 3:
+        monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 12)
+    rng = np.random.default_rng(n)
+    q, u = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    absolute = chain_by_hand(np.cumsum(q), np.cumsum(u))
+    expected_relative = np.diff(np.concatenate([[0.0], absolute]))
+    tree = chain_tree(n)
+    for label, dynamics in _formulations(tree).items():
+        assert_close(dynamics.accelerations(0.0, q, u, None), expected_relative, rtol=0,
+                     atol=1e-10 * np.max(np.abs(expected_relative)), err_msg=label)
+    if n == 3:
+        monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
+        tree = chain_tree(n)  # a new tree: nothing compiled for it yet
+        assert_close(jaxdyn.ArticulatedBody(tree).accelerations(0.0, q, u, None),
+                     expected_relative, rtol=0, atol=1e-10 * np.max(np.abs(expected_relative)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Free, spherical and planar joints
+# ---------------------------------------------------------------------------------------------
+
+INERTIA = np.diag([0.3, 0.5, 0.8]) + 0.05 * np.ones((3, 3))
+
+
+def test_free_body_follows_eulers_equations():
+    """A torque-free body with its centre of mass at its origin: I ω̇ = −ω × I ω, and the body-
+    axes velocity of its centre rotates against ω: v̇ = −ω × v (constant in the world)."""
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("body", jaxdyn.Free(), mass=2.0,
+                                             inertia=jnp.asarray(INERTIA))])
+    quaternion = np.array([0.9, 0.1, -0.3, 0.2])
+    q = np.concatenate([[0.1, 0.2, 0.3], quaternion / np.linalg.norm(quaternion)])
+    v, omega = np.array([0.4, -0.1, 0.7]), np.array([1.1, -0.6, 2.3])
+    expected = np.concatenate([-np.cross(omega, v),
+                               np.linalg.solve(INERTIA, -np.cross(omega, INERTIA @ omega))])
+    for label, dynamics in _formulations(tree, lagrange=False).items():
+        assert_close(dynamics.accelerations(0.0, q, np.concatenate([v, omega]), None),
+                     expected, rtol=1e-12, err_msg=label)
+
+
+def test_spherical_pendulum_matches_a_description_by_positions():
+    """A body on a ball joint under gravity, against the same body described by its position
+    and orientation (quaternion coordinates, speeds the body angular velocity) — Kane on a
+    `MultibodySystem`, an independent route to the same equations."""
+    com = np.array([0.1, -0.2, -0.6])
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("bob", jaxdyn.Spherical(), mass=1.5,
+                                             com=tuple(com), inertia=jnp.asarray(INERTIA))],
+                                gravity=jnp.array([0.0, 0.0, -9.81]))
+
+    def orientation(q, p):
+        return jaxdyn.rotations.quaternion(q)
+
+    body = jaxdyn.RigidBody(1.5, jnp.asarray(INERTIA),
+                            lambda q, p: orientation(q, p) @ jnp.asarray(com), orientation)
+    system = jaxdyn.MultibodySystem([body], gravity=jnp.array([0.0, 0.0, -9.81]))
+
+    def kinematic_map(q, p):  # q̇ = ½ q ⊗ (0, ω)
+        w, x, y, z = q / jnp.linalg.norm(q)
+        return 0.5 * jnp.array([[-x, -y, -z], [w, -z, y], [z, w, -x], [-y, x, w]])
+
+    reference = jaxdyn.Kane(system, kinematic_map)
+    quaternion = np.array([0.8, 0.3, -0.4, 0.2])
+    q, u = quaternion / np.linalg.norm(quaternion), np.array([0.7, -1.2, 0.5])
+    expected = reference.accelerations(0.0, q, u, None)
+    for label, dynamics in _formulations(tree, lagrange=False).items():
+        assert_close(dynamics.accelerations(0.0, q, u, None), expected, rtol=1e-12, atol=1e-12,
+                     err_msg=label)
+        assert_close(dynamics.energy(0.0, q, u, None), reference.energy(0.0, q, u, None),
+                     rtol=1e-13)
+
+
+def test_planar_joint_free_fall_and_spin():
+    """A planar body (plane normal to z) under gravity −y in the plane: its centre falls with
+    g, and with no torque about its centre its rate of turn is constant — checked through the
+    world motion of the centre after a short simulation, its origin a distance c from the
+    centre."""
+    c = 0.3
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("plate", jaxdyn.Planar(), mass=2.0,
+                                             com=(c, 0.0, 0.0),
+                                             inertia=jnp.diag(jnp.array([0.1, 0.2, 0.25])))],
+                                gravity=jnp.array([0.0, -9.81, 0.0]))
+    q0, u0 = np.array([0.0, 0.0, 0.4]), np.array([0.0, 0.0, 1.5])
+    # body-axes velocity of the origin when the centre is at rest: v = −ω × c = (0, −ω c, 0)
+    u0[1] = -u0[2] * c
+    t1 = 0.8
+    for label, dynamics in _formulations(tree).items():
+        # Lagrange's speeds are q̇ = K(q) u
+        speeds = tree.coordinate_rates(0.0, q0, u0, None) if label == "Lagrange" else u0
+        sol = jaxdyn.simulate(dynamics, q0, speeds, None, t1=t1)
+        x, y, theta = np.asarray(sol.q[-1])
+        centre = np.array([x + c * np.cos(theta), y + c * np.sin(theta)])
+        start = np.array([c * np.cos(0.4), c * np.sin(0.4)])
+        assert_close(centre, start + np.array([0.0, -0.5 * 9.81 * t1**2]), rtol=0, atol=1e-9,
+                     err_msg=label)
+        assert_close(theta, 0.4 + 1.5 * t1, rtol=1e-10, err_msg=label)
+
+
+# ---------------------------------------------------------------------------------------------
+# Springs, dampers, loads; conservation; gradients
+# ---------------------------------------------------------------------------------------------
+
+
+def test_pendulum_with_spring_damper_motor_and_tip_force():
+    """One rod about z, hanging along −y: I_O θ̈ = −k (θ − θ₀) − c θ̇ + τ − m g (l/2) sin θ
+    + F_x l cos θ for a horizontal force F_x at the tip (world x)."""
+    m, l, g, k, c, rest, tau, fx = 1.3, 0.7, 9.81, 4.0, 0.3, 0.2, 0.5, 1.7
+    link = jaxdyn.Link("rod", jaxdyn.Revolute((0, 0, 1)), mass=lambda p: p["m"],
+                       com=(0.0, -l / 2, 0.0),
+                       inertia=jnp.diag(jnp.array([1.0, 0.0, 1.0])) * m * l**2 / 12,
+                       stiffness=lambda p: p["k"], damping=c, rest=rest)
+    tree = jaxdyn.RigidBodyTree(
+        [link], gravity=jnp.array([0.0, -g, 0.0]),
+        forces=lambda q, u, p: jnp.full(1, tau),
+        loads=[jaxdyn.LinkLoad("rod", force=lambda q, u, p: jnp.array([fx, 0.0, 0.0]),
+                               point=(0.0, -l, 0.0))])
+    theta, omega = 0.6, -0.8
+    inertia_o = m * l**2 / 3
+    expected = (-k * (theta - rest) - c * omega + tau - m * g * l / 2 * np.sin(theta)
+                + fx * l * np.cos(theta)) / inertia_o
+    for label, dynamics in _formulations(tree).items():
+        assert_close(dynamics.accelerations(0.0, np.array([theta]), np.array([omega]),
+                                            {"m": m, "k": k}), [expected], rtol=1e-12,
+                     err_msg=label)
+
+
+def _floating_arm():
+    """A free-floating base with a two-link arm (revolute about y and x) and a ball joint."""
+    inertia = jnp.asarray(INERTIA)
+    return jaxdyn.RigidBodyTree([
+        jaxdyn.Link("base", jaxdyn.Free(), mass=3.0, com=(0.05, 0.0, 0.1), inertia=inertia),
+        jaxdyn.Link("upper", jaxdyn.Revolute((0, 1, 0)), parent="base",
+                    translation=(0.2, 0.0, 0.1), mass=1.0, com=(0.0, 0.0, 0.3),
+                    inertia=0.2 * inertia),
+        jaxdyn.Link("lower", jaxdyn.Revolute((1, 0, 0)), parent="upper",
+                    translation=(0.0, 0.0, 0.6), mass=0.5, com=(0.0, 0.1, 0.2),
+                    inertia=0.1 * inertia),
+        jaxdyn.Link("hand", jaxdyn.Spherical(), parent="lower", translation=(0.0, 0.0, 0.4),
+                    mass=0.3, com=(0.0, 0.0, 0.05), inertia=0.05 * inertia),
+    ])
+
+
+def test_free_floating_tree_conserves_energy_and_momentum():
+    tree = _floating_arm()
+    dynamics = jaxdyn.ArticulatedBody(tree)
+    q0 = tree.neutral_configuration()
+    q0[7:9] = [0.4, -0.7]
+    u0 = np.array([0.1, -0.2, 0.3, 0.5, -0.4, 0.2, 1.0, -1.5, 0.3, 0.8, -0.6])
+    ts = np.linspace(0.0, 2.0, 21)
+    sol = jaxdyn.simulate(dynamics, q0, u0, None, t1=2.0, ts=ts)
+    energy = dynamics.energy(sol.ts, sol.q, sol.u, None)
+    assert np.max(np.abs(energy - energy[:1])) < 1e-8 * abs(float(energy[0]))
+    linear = jax.vmap(lambda q, u: tree.linear_momentum(0.0, q, u, None))(sol.q, sol.u)
+    angular = jax.vmap(lambda q, u: tree.angular_momentum(0.0, q, u, None))(sol.q, sol.u)
+    assert np.max(np.abs(linear - linear[:1])) < 1e-9
+    assert np.max(np.abs(angular - angular[:1])) < 1e-8
+    # the other formulations on the same states
+    for label, other in _formulations(tree, lagrange=False).items():
+        assert_close(other.accelerations(0.0, sol.q[5], sol.u[5], None),
+                     dynamics.accelerations(0.0, sol.q[5], sol.u[5], None), rtol=1e-10,
+                     atol=1e-10, err_msg=label)
+
+
+def test_gradients_with_respect_to_masses_and_inertias():
+    """d/dp of a short simulation's final state against central finite differences."""
+    def link(name, parent, p_key):
+        return jaxdyn.Link(name, jaxdyn.Revolute((0, 0, 1)), parent=parent,
+                           translation=(0.0, 0.0 if parent is None else -0.7, 0.0),
+                           mass=lambda p, k=p_key: p[k], com=(0.0, -0.35, 0.0),
+                           inertia=lambda p, k=p_key: jnp.diag(
+                               jnp.array([1.0, 0.0, 1.0])) * p[k + "_I"])
+
+    tree = jaxdyn.RigidBodyTree([link("a", None, "m1"), link("b", "a", "m2")],
+                                gravity=jnp.array([0.0, -9.81, 0.0]))
+    dynamics = jaxdyn.ArticulatedBody(tree)
+    q0, u0 = np.array([0.8, -0.3]), np.array([0.0, 0.5])
+    p = {"m1": 1.2, "m1_I": 0.05, "m2": 0.7, "m2_I": 0.03}
+
+    def loss(p):
+        sol = jaxdyn.simulate(dynamics, q0, u0, p, t1=1.0, rtol=1e-12, atol=1e-12)
+        return jnp.sum(sol.q[-1] ** 2 + 0.1 * sol.u[-1] ** 2)
+
+    grads = jax.grad(loss)(p)
+    numeric = central_difference_params(loss, p, step=1e-5)
+    for key in p:
+        assert_close(grads[key], numeric[key], rtol=1e-6, atol=1e-8, err_msg=key)
+
+
+def test_tree_errors():
+    with pytest.raises(ValueError, match="listed before its parent"):
+        jaxdyn.RigidBodyTree([jaxdyn.Link("b", jaxdyn.Revolute(), parent="a"),
+                              jaxdyn.Link("a", jaxdyn.Revolute())])
+    with pytest.raises(ValueError, match="names must be unique"):
+        jaxdyn.RigidBodyTree([jaxdyn.Link("a", jaxdyn.Revolute()),
+                              jaxdyn.Link("a", jaxdyn.Revolute(), parent="a")])
+    with pytest.raises(ValueError, match="springs and dampers apply to revolute"):
+        jaxdyn.Link("a", jaxdyn.Spherical(), stiffness=1.0)
+    tree = _floating_arm()
+    with pytest.raises(ValueError, match="Lagrange's equations in q̇ do not apply"):
+        jaxdyn.Lagrangian.from_system(tree).accelerations(
+            0.0, tree.neutral_configuration(), np.zeros(13), None)
+    with pytest.raises(ValueError, match="This tree has 13 coordinates"):
+        jaxdyn.ArticulatedBody(tree).accelerations(0.0, np.zeros(3), np.zeros(11), None)
+    with pytest.raises(ValueError, match="a non-zero 3-vector"):
+        jaxdyn.Revolute((0.0, 0.0, 0.0))
+    massless = jaxdyn.RigidBodyTree([jaxdyn.Link("a", jaxdyn.Revolute())])
+    with pytest.raises(RuntimeError, match="mass matrix is singular"):
+        jaxdyn.ArticulatedBody(massless).accelerations(0.0, np.zeros(1), np.zeros(1), None)
