@@ -8,6 +8,7 @@ from .._dynamics import AbstractDynamics
 from .._linalg import ldl, ldl_solve
 from .._state import check_vector
 from .._system import spatial
+from .._system import tree as tree_module
 from .._system.tree import RigidBodyTree
 from .kane import kane_equations
 
@@ -129,7 +130,8 @@ def articulated_body_algorithm(tree, t, q, u, p):
     subspaces_np, padded_np, columns = _subspaces(tree)
     n, width = padded_np.shape
     subspaces = jnp.asarray(subspaces_np, dtype)
-    padded = jnp.asarray(padded_np, dtype)
+    # In a Python loop over the links, each sees its own joint's width (see `inwards`).
+    padded = padded_np if n <= tree_module.LOOP_MAX else jnp.asarray(padded_np, dtype)
     link_of, column_of = (np.array(x, dtype=np.int32) for x in zip(*columns)) if columns else \
         (np.zeros(0, np.int32), np.zeros(0, np.int32))
 
@@ -163,6 +165,11 @@ def articulated_body_algorithm(tree, t, q, u, p):
     def inwards(accumulated, link):
         inertia_c, bias_c = accumulated
         x, own_inertia, own_bias, s, pad, torque, c = link
+        # Links taken one by one (a Python loop) see their own joint's width k (S and `pad` are
+        # NumPy constants): a floating base's six columns do not widen every other link's
+        # algebra. In a scan every link has the tree's widest joint, padded columns pinned.
+        k = max(1, int(np.sum(pad == 0))) if isinstance(pad, np.ndarray) else width
+        s, pad, torque = s[:, :k], pad[:k], torque[:k]
         articulated = own_inertia + inertia_c
         articulated_bias = own_bias + bias_c
         u_matrix = spatial.matmul(articulated, s)  # U = I^A S
@@ -179,8 +186,10 @@ def articulated_body_algorithm(tree, t, q, u, p):
         xt = jnp.swapaxes(x, -1, -2)
         up = (spatial.matmul(xt, spatial.matmul(reduced, x)), _matvec6(xt, reduced_bias))
         scale = jnp.max(jnp.abs(jnp.diagonal(d)) * (1 - pad)) + jnp.finfo(dtype).tiny
-        failed = jnp.any((pivots <= width * jnp.finfo(dtype).eps * scale) & (pad == 0))
-        return (u_matrix, d_inv_ut, d_inv_residual, failed), up
+        failed = jnp.any((pivots <= k * jnp.finfo(dtype).eps * scale) & (pad == 0))
+        widen = ((0, 0),) * (u_matrix.ndim - 1) + ((0, width - k),)
+        return (jnp.pad(u_matrix, widen), jnp.pad(d_inv_ut, widen),
+                jnp.pad(d_inv_residual, widen[-1:]), failed), up
 
     zero = (jnp.zeros((6, 6), dtype), jnp.zeros(6, dtype))
     (u_matrices, u_d_inv, d_inv_residuals, failures), _ = tree.backward(
