@@ -6,11 +6,21 @@ from . import rotations as rotations
 from ._system.base import AbstractMultibody as AbstractMultibody
 from ._dynamics import AbstractDynamics as AbstractDynamics
 from ._form.articulated import ArticulatedBody as ArticulatedBody
+from ._form.constraints import (
+    Baumgarte as Baumgarte,
+    Constrained as Constrained,
+    IndependentSpeeds as IndependentSpeeds,
+    Projection as Projection,
+)
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane
 from ._integrate import simulate as simulate
-from ._solution import RESULTS as RESULTS, Solution as Solution
+from ._solution import (
+    RESULTS as RESULTS,
+    ConstraintRecord as ConstraintRecord,
+    Solution as Solution,
+)
 from ._system.bodies import Particle as Particle, RigidBody as RigidBody
 from ._system.loads import BodyTorque as BodyTorque, PointForce as PointForce
 from ._system.joints import (

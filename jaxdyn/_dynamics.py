@@ -10,7 +10,13 @@ import numpy as np
 
 from ._custom_types import Coordinates, MassMatrix, Params, RealScalarLike, Speeds
 from ._errors import check_static_indexing, error_if
-from ._linalg import NONFINITE_FORCING, SINGULAR_MASS_MATRIX, solve, solve_mass_matrix
+from ._linalg import (
+    NONFINITE_FORCING,
+    SINGULAR_CONSTRAINTS,
+    SINGULAR_MASS_MATRIX,
+    solve,
+    solve_mass_matrix,
+)
 from ._state import public_method
 from ._unroll import Symbol, fits, is_constant, structure, unrolled
 
@@ -58,6 +64,16 @@ class AbstractDynamics(eqx.Module):
     def user_functions(self, t, q, u, p=None):
         """Every user callback evaluated once, without derivatives (for trace-time checks)."""
 
+    def state_projection(self):
+        """None, or a function (t, q, u, p) → (q, u) that `simulate` applies after every step
+        (drift control of constrained systems, `jaxdyn.Projection`)."""
+        return None
+
+    def singular_constraints(self, t, q, u, p=None):
+        """Whether, where the equations fail as singular, the constraints are the cause rather
+        than the mass matrix (only constrained formulations have constraints)."""
+        return jnp.zeros((), bool)
+
     def __hash__(self):
         # By structure (callbacks, static fields, array shapes), so that a bound method such
         # as `jax.jit(system.accelerations)` can be hashed although the system holds arrays;
@@ -99,7 +115,9 @@ class AbstractDynamics(eqx.Module):
 
         def causes():  # evaluated only where the accelerations are NaN
             _, _, singular, nonfinite = equations_of_motion(self, t, q, u, p)
-            return [(nonfinite, NONFINITE_FORCING), (singular, SINGULAR_MASS_MATRIX)]
+            constraints = singular & self.singular_constraints(t, q, u, p)
+            return [(nonfinite, NONFINITE_FORCING), (constraints, SINGULAR_CONSTRAINTS),
+                    (singular, SINGULAR_MASS_MATRIX)]
 
         return error_if(accelerations, causes, (t, q, u),
                         failed=~jnp.all(jnp.isfinite(accelerations)))

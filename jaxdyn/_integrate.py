@@ -14,7 +14,8 @@ from ._dynamics import (
 )
 from ._linalg import factorise
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
-from ._solution import RESULTS, Solution
+from ._form.constraints import Constrained
+from ._solution import RESULTS, ConstraintRecord, Solution
 from ._state import check_vector, numbers_as_arrays, state_dtype
 
 MAX_STEPS = (
@@ -64,7 +65,8 @@ def simulate(
     - `dense`: keep the dense interpolant (`Solution.evaluate`).
     - `save`: which of "q", "u", "qd" to save at `ts`; the others are None in the solution.
       Saving less interpolates and stores less in every step (and "qd" = K(q) u is only
-      formed when asked for).
+      formed when asked for). For a `jaxdyn.Constrained` formulation, "constraints" also
+      saves the multipliers, constraint forces and violations (`Solution.constraints`).
     - `solver`, `rtol`, `atol`, `dt0`, `stepsize_controller`: the diffrax solver and step-size
       control. Defaults: `Dopri8` (8th order) with a `PIDController` at rtol = atol = 1e-10 in
       float64 (1e-6 in float32, near what that precision can hold) and an automatically chosen
@@ -103,8 +105,11 @@ def simulate(
     numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), dtype)
     # Few arguments: binding them is part of the per-call cost.
     save = (save,) if isinstance(save, str) else tuple(save)
-    if not save or set(save) - {"q", "u", "qd"}:
-        raise ValueError(f"save must name some of 'q', 'u', 'qd', got {save!r}.")
+    if not save or set(save) - {"q", "u", "qd", "constraints"}:
+        raise ValueError(f"save must name some of 'q', 'u', 'qd', 'constraints', got {save!r}.")
+    if "constraints" in save and not isinstance(dynamics, Constrained):
+        raise ValueError("save='constraints' needs a jaxdyn.Constrained formulation, got "
+                         f"{type(dynamics).__name__}.")
     options = (dense, save, solver, stepsize_controller, max_steps, adjoint, throw)
     return _simulate(dynamics, q0, u0, numbers, options)
 
@@ -138,7 +143,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
         factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p), unrolled=False,
                                   blocks=mass_matrix_blocks(dynamics, t0, q0, u0, p))
 
-    keep_q, keep_u = "q" in save or "qd" in save, "u" in save or "qd" in save
+    keep = {"q", "qd", "constraints"} & set(save), {"u", "qd", "constraints"} & set(save)
+    keep_q, keep_u = bool(keep[0]), bool(keep[1])
 
     def observe(t, y, args):
         return y[0] if keep_q else None, y[1] if keep_u else None
@@ -156,6 +162,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
                             controller_state=True)
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    if dynamics.state_projection() is not None:
+        solver = _Projected(solver)
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field),
         solver,
@@ -171,6 +179,11 @@ def _simulate(dynamics, q0, u0, numbers, options):
         throw=False,  # raised below, with jaxdyn's own messages
     )
     (q, u), (q_last, u_last) = solution.ys
+    projection = dynamics.state_projection()
+    if projection is not None and keep_q and keep_u:
+        # Saved states between steps are interpolated, off the constraints by the local
+        # error: projected like the steps' ends.
+        q, u = jax.vmap(projection, in_axes=(0, 0, 0, None))(solution.ts[0], q, u, p)
     t_last = solution.ts[1][0]
     stalled = solution.controller_state[-1]
     result, failure = _diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
@@ -179,13 +192,20 @@ def _simulate(dynamics, q0, u0, numbers, options):
     ts_out = solution.ts[0]
     if throw:
         ts_out = error_if(ts_out, [(result == code, RESULTS[code]) for code in (
-            RESULTS.singular_mass_matrix, RESULTS.nonfinite_forcing,
-            RESULTS.nonfinite_equations)], failure)
+            RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
+            RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)], failure)
         ts_out = error_if(ts_out, [(result == RESULTS.max_steps_reached, MAX_STEPS)])
         ts_out = result.error_if(ts_out, result != RESULTS.successful)
     qd = None
     if "qd" in save:
         qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
+    constraints = None
+    if "constraints" in save:
+        constraints = ConstraintRecord(
+            multipliers=dynamics.multipliers(ts_out, q, u, p),
+            constraint_forces=dynamics.constraint_forces(ts_out, q, u, p),
+            position_violation=dynamics.position_violation(ts_out, q, u, p),
+            velocity_violation=dynamics.velocity_violation(ts_out, q, u, p))
     return Solution(
         ts=ts_out,
         q=q if "q" in save else None,
@@ -196,6 +216,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
         num_accepted_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
         dense=solution if dense else None,
+        constraints=constraints,
     )
 
 
@@ -335,7 +356,54 @@ def _diagnose(dynamics, p, factorisation, t, q, u, stalled, direction, span):
     start = (t, q, u, rates, accelerations, singular, nonfinite)
     _, state = jax.lax.while_loop(searching, probe, (jnp.array(0), start))
     t_fail, q_fail, u_fail, _, _, singular, nonfinite = state
+    by_constraints = singular & dynamics.singular_constraints(t_fail, q_fail, u_fail, p)
     code = RESULTS.where(singular, RESULTS.singular_mass_matrix,
                          RESULTS.where(nonfinite, RESULTS.nonfinite_forcing,
                                        RESULTS.nonfinite_equations))
+    code = RESULTS.where(by_constraints, RESULTS.singular_constraints, code)
     return code, (t_fail, q_fail, u_fail)
+
+
+class _Projected(diffrax.AbstractWrappedSolver):
+    """A diffrax solver whose every step ends with the dynamics' `state_projection` (drift
+    control of constraints). The step's error estimate is the wrapped solver's, before the
+    projection; the next step re-evaluates its first stage at the projected state
+    (`made_jump`), as first-same-as-last solvers would otherwise reuse the unprojected one."""
+
+    solver: diffrax.AbstractSolver
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        y1, y_error, dense_info, solver_state, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state, True)
+        dynamics, p, _ = args
+        y1 = dynamics.state_projection()(t1, *y1, p)
+        if "y1" in dense_info:
+            dense_info = dict(dense_info, y1=y1)
+        return y1, y_error, dense_info, solver_state, result
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)

@@ -17,6 +17,18 @@ SINGULAR_MASS_MATRIX = (
     "  - the kinetic energy is not convex in the speeds (wrong sign, or not quadratic)."
 )
 
+SINGULAR_CONSTRAINTS = (
+    "The constraint Jacobian C (the rows of the holonomic constraints' velocity form and of the "
+    "Pfaffian constraints, in the speeds) has lost rank here, so the multipliers are not "
+    "determined. Likely causes:\n"
+    "  - redundant constraints (one row a combination of others: a closed loop written twice, "
+    "or a planar loop closed by more equations than it removes freedoms); pass "
+    "redundant='least_squares' to take the minimum-norm multipliers;\n"
+    "  - a singular configuration of the mechanism (a four-bar or slider-crank at a dead "
+    "point, a linkage at a bifurcation), where the constraints stop fixing the motion: change "
+    "the coordinates or the mechanism's dimensions, or stop short of that state."
+)
+
 NONFINITE_FORCING = (
     "The generalized forcing (the right-hand side of M a = f) contains NaN or inf. Likely "
     "causes: a NaN or inf in the state or parameters, or an energy, force or dissipation "

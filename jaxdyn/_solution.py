@@ -4,7 +4,7 @@ import diffrax
 import equinox as eqx
 from jaxtyping import Array, Float, Int
 
-from ._linalg import NONFINITE_FORCING, SINGULAR_MASS_MATRIX
+from ._linalg import NONFINITE_FORCING, SINGULAR_CONSTRAINTS, SINGULAR_MASS_MATRIX
 
 
 class RESULTS(diffrax.RESULTS):
@@ -12,11 +12,30 @@ class RESULTS(diffrax.RESULTS):
 
     singular_mass_matrix = SINGULAR_MASS_MATRIX
     nonfinite_forcing = NONFINITE_FORCING
+    singular_constraints = SINGULAR_CONSTRAINTS
     nonfinite_equations = (
         "The equations of motion became NaN or inf where the mass matrix and the forcing "
         "are finite: the kinematic map q̇ = K(q) u, or an intermediate value of a callback, "
         "is not finite there."
     )
+
+
+class ConstraintRecord(eqx.Module):
+    """Constraint quantities along a trajectory of a `jaxdyn.Constrained` formulation
+    (`simulate(..., save=(..., "constraints"))`).
+
+    **Fields:**
+
+    - `multipliers`: λ at the save times, shape (k, m) (holonomic rows, then Pfaffian).
+    - `constraint_forces`: Cᵀλ, the generalized constraint forces along the speeds (k, n_u).
+    - `position_violation`: φ(t, q), shape (k, m₁).
+    - `velocity_violation`: C u − b, shape (k, m).
+    """
+
+    multipliers: Float[Array, "k m"]
+    constraint_forces: Float[Array, "k nu"]
+    position_violation: Float[Array, "k m1"]
+    velocity_violation: Float[Array, "k m"]
 
 
 class Solution(eqx.Module):
@@ -32,6 +51,7 @@ class Solution(eqx.Module):
     - `result`: a `jaxdyn.RESULTS` member (`RESULTS.successful` unless `throw=False` and the
       solve failed).
     - `num_steps`, `num_accepted_steps`, `num_rejected_steps`: solver statistics.
+    - `constraints`: a `ConstraintRecord` when `save` included "constraints", else None.
     - `dense`: the underlying `diffrax.Solution` when `dense=True` was asked for, else None;
       use `evaluate`.
     """
@@ -45,6 +65,7 @@ class Solution(eqx.Module):
     num_accepted_steps: Int[Array, ""]
     num_rejected_steps: Int[Array, ""]
     dense: diffrax.Solution | None = None
+    constraints: ConstraintRecord | None = None
 
     def evaluate(self, t):
         """(q(t), u(t)) from the solver's dense interpolant (needs `dense=True`)."""
