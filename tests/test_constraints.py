@@ -58,6 +58,19 @@ def test_pendulum_accelerations_and_tension_match_the_closed_form():
                      rtol=1e-12)
 
 
+def test_float32_is_an_explicit_option():
+    """The same closed form in single precision, at single precision's tolerance."""
+    system = pendulum()
+    q, qd = (x.astype(np.float32) for x in pendulum_state(0.9, 1.3))
+    g, l = PENDULUM["g"], PENDULUM["l"]
+    accelerations = system.accelerations(np.float32(0.0), q, qd, PENDULUM)
+    assert accelerations.dtype == np.float32
+    theta_dd = -g / l * np.sin(0.9)
+    expected = l * theta_dd * np.array([np.cos(0.9), np.sin(0.9)]) + \
+        l * 1.3**2 * np.array([-np.sin(0.9), np.cos(0.9)])
+    assert_close(np.asarray(accelerations, np.float64), expected, rtol=2e-5)
+
+
 @pytest.mark.parametrize("stabilisation", [None, jaxdyn.Baumgarte(), jaxdyn.Projection()],
                          ids=["none", "baumgarte", "projection"])
 def test_violation_over_a_long_horizon(stabilisation):
@@ -407,3 +420,102 @@ def test_a_closed_loop_of_joints_matches_the_four_bar_in_absolute_angles():
     assert np.max(np.abs(loop.position_violation(0.0, q_rel, u_rel))) < 1e-12
     expected = to_relative @ np.asarray(reference.accelerations(0.0, q_abs, u_abs, FOUR_BAR))
     assert_close(loop.accelerations(0.0, q_rel, u_rel), expected, rtol=1e-10, atol=1e-12)
+
+
+# -- rolling disc as Pfaffian constraints, against sympy's KanesMethod ----------------------------
+
+DISC = {"m": 1.5, "r": 0.4, "g": 9.81}
+
+
+def _disc_frames(q):
+    """R_N←D = Rz(ψ) Rx(θ) Ry(φ) (heading, lean, spin), and the lean frame's z axis."""
+    from jaxdyn.rotations import rotation_x, rotation_y, rotation_z
+
+    lean = rotation_z(q[2]) @ rotation_x(q[3])
+    return lean @ rotation_y(q[4]), lean[:, 2]
+
+
+def rolling_disc_pfaffian():
+    """q = (x, y, ψ, θ, φ) with (x, y) the contact point, q̇ as speeds (a `Lagrangian` of the
+    disc's energies); the disc's material point at the contact has no horizontal velocity:
+    two Pfaffian rows A(q) q̇ = 0, A = ∂v_P/∂q̇."""
+    def centre(q, p):
+        return jnp.concatenate([q[:2], jnp.zeros(1)]) + p["r"] * _disc_frames(q)[1]
+
+    def omega_body(q, qd):
+        rotation, rate = jax.jvp(lambda q: _disc_frames(q)[0], (q,), (qd,))
+        skew = rotation.T @ rate
+        return jnp.stack([skew[2, 1], skew[0, 2], skew[1, 0]])
+
+    def kinetic(q, qd, p):
+        v = jax.jvp(lambda q: centre(q, p), (q,), (qd,))[1]
+        w = omega_body(q, qd)
+        inertia = p["m"] * p["r"] ** 2 * jnp.array([0.25, 0.5, 0.25])
+        return 0.5 * p["m"] * jnp.sum(v**2) + 0.5 * jnp.sum(inertia * w**2)
+
+    def potential(q, p):
+        return p["m"] * p["g"] * centre(q, p)[2]
+
+    def contact_velocity(q, qd, p):
+        v = jax.jvp(lambda q: centre(q, p), (q,), (qd,))[1]
+        rotation = _disc_frames(q)[0]
+        w = rotation @ omega_body(q, qd)  # in the ground's axes
+        return v + jnp.cross(w, -p["r"] * _disc_frames(q)[1])
+
+    def no_slip(q, p):
+        return jax.jacfwd(lambda qd: contact_velocity(q, qd, p)[:2])(jnp.zeros_like(q))
+
+    return jaxdyn.Constrained(jaxdyn.Lagrangian(kinetic, potential), pfaffian=no_slip), centre
+
+
+def test_rolling_disc_as_pfaffian_constraints_matches_sympy_kanes_method():
+    sm = pytest.importorskip("sympy")
+    me = pytest.importorskip("sympy.physics.mechanics")
+    x, y, psi, th, ph = me.dynamicsymbols("x y psi theta phi")
+    u1, u2, u3 = me.dynamicsymbols("u1 u2 u3")
+    m, r, g = sm.symbols("m r g", positive=True)
+    t = me.dynamicsymbols._t
+    frame = me.ReferenceFrame("N")
+    heading = frame.orientnew("Y", "Axis", [psi, frame.z])
+    lean = heading.orientnew("L", "Axis", [th, heading.x])
+    disc = lean.orientnew("D", "Axis", [ph, lean.y])
+    origin = me.Point("O")
+    origin.set_vel(frame, 0)
+    centre_point = origin.locatenew("G", x * frame.x + y * frame.y + r * lean.z)
+    centre_point.set_vel(frame, centre_point.pos_from(origin).dt(frame))
+    spin = u2 - u3 * sm.tan(th)
+    kd = [x.diff(t) - r * sm.cos(psi) * spin, y.diff(t) - r * sm.sin(psi) * spin,
+          psi.diff(t) - u3 / sm.cos(th), th.diff(t) - u1, ph.diff(t) - spin]
+    body = me.RigidBody("disc", centre_point, disc, m,
+                        (me.inertia(disc, m * r**2 / 4, m * r**2 / 2, m * r**2 / 4),
+                         centre_point))
+    coords, speeds = [x, y, psi, th, ph], [u1, u2, u3]
+    kane = me.KanesMethod(frame, q_ind=coords, u_ind=speeds, kd_eqs=kd)
+    kane.kanes_equations([body], [(centre_point, -m * g * frame.z)])
+    qdot = sm.Matrix([c.diff(t) for c in coords]).subs(kane.kindiffdict())
+    args = (coords, speeds, [m, r, g])
+    mass, forcing = (sm.lambdify(args, e, "numpy") for e in (kane.mass_matrix, kane.forcing))
+    rates = sm.lambdify(args, qdot, "numpy")
+    d_rates_dq = sm.lambdify(args, qdot.jacobian(coords), "numpy")
+    d_rates_du = sm.lambdify(args, qdot.jacobian(speeds), "numpy")
+
+    system, centre = rolling_disc_pfaffian()
+    params = [DISC["m"], DISC["r"], DISC["g"]]
+    for _ in range(3):
+        q = np.concatenate([RNG.uniform(-1, 1, 3), RNG.uniform(-0.6, 0.6, 1),
+                            RNG.uniform(-1, 1, 1)])
+        u = RNG.uniform(-2, 2, 3)
+        qd = np.asarray(rates(q, u, params), float).ravel()
+        udot = np.linalg.solve(np.asarray(mass(q, u, params), float),
+                               np.asarray(forcing(q, u, params), float).ravel())
+        qdd = (np.asarray(d_rates_dq(q, u, params), float) @ qd
+               + np.asarray(d_rates_du(q, u, params), float) @ udot)
+        assert np.max(np.abs(system.velocity_violation(0.0, q, qd, DISC))) < 1e-12
+        ours = system.accelerations(0.0, q, qd, DISC)
+        assert_close(ours, qdd, rtol=1e-10, atol=1e-10)
+        # the multipliers are the friction force at the contact: m a_G (horizontal part)
+        a_centre = jax.jvp(lambda q, qd: jax.jvp(lambda q: centre(q, DISC), (q,), (qd,))[1],
+                           (jnp.asarray(q), jnp.asarray(qd)),
+                           (jnp.asarray(qd), ours))[1]
+        assert_close(system.multipliers(0.0, q, qd, DISC), DISC["m"] * a_centre[:2],
+                     rtol=1e-10, atol=1e-10)
