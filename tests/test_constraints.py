@@ -469,53 +469,29 @@ def rolling_disc_pfaffian():
 
 
 def test_rolling_disc_as_pfaffian_constraints_matches_sympy_kanes_method():
-    sm = pytest.importorskip("sympy")
-    me = pytest.importorskip("sympy.physics.mechanics")
-    x, y, psi, th, ph = me.dynamicsymbols("x y psi theta phi")
-    u1, u2, u3 = me.dynamicsymbols("u1 u2 u3")
-    m, r, g = sm.symbols("m r g", positive=True)
-    t = me.dynamicsymbols._t
-    frame = me.ReferenceFrame("N")
-    heading = frame.orientnew("Y", "Axis", [psi, frame.z])
-    lean = heading.orientnew("L", "Axis", [th, heading.x])
-    disc = lean.orientnew("D", "Axis", [ph, lean.y])
-    origin = me.Point("O")
-    origin.set_vel(frame, 0)
-    centre_point = origin.locatenew("G", x * frame.x + y * frame.y + r * lean.z)
-    centre_point.set_vel(frame, centre_point.pos_from(origin).dt(frame))
-    spin = u2 - u3 * sm.tan(th)
-    kd = [x.diff(t) - r * sm.cos(psi) * spin, y.diff(t) - r * sm.sin(psi) * spin,
-          psi.diff(t) - u3 / sm.cos(th), th.diff(t) - u1, ph.diff(t) - spin]
-    body = me.RigidBody("disc", centre_point, disc, m,
-                        (me.inertia(disc, m * r**2 / 4, m * r**2 / 2, m * r**2 / 4),
-                         centre_point))
-    coords, speeds = [x, y, psi, th, ph], [u1, u2, u3]
-    kane = me.KanesMethod(frame, q_ind=coords, u_ind=speeds, kd_eqs=kd)
-    kane.kanes_equations([body], [(centre_point, -m * g * frame.z)])
-    qdot = sm.Matrix([c.diff(t) for c in coords]).subs(kane.kindiffdict())
-    args = (coords, speeds, [m, r, g])
-    mass, forcing = (sm.lambdify(args, e, "numpy") for e in (kane.mass_matrix, kane.forcing))
-    rates = sm.lambdify(args, qdot, "numpy")
-    d_rates_dq = sm.lambdify(args, qdot.jacobian(coords), "numpy")
-    d_rates_du = sm.lambdify(args, qdot.jacobian(speeds), "numpy")
+    """q̈ of the multiplier form, mapped to the speeds of sympy's model (u1 = θ̇, u3 = ψ̇ cos θ,
+    u2 = φ̇ + u3 tan θ, differentiated by hand), against KanesMethod's u̇ = M⁻¹ f."""
+    from sympy_rolling_disc import sympy_rolling_disc
 
+    mass, forcing, rates, to_args = sympy_rolling_disc()
     system, centre = rolling_disc_pfaffian()
-    params = [DISC["m"], DISC["r"], DISC["g"]]
     for _ in range(3):
         q = np.concatenate([RNG.uniform(-1, 1, 3), RNG.uniform(-0.6, 0.6, 1),
                             RNG.uniform(-1, 1, 1)])
         u = RNG.uniform(-2, 2, 3)
-        qd = np.asarray(rates(q, u, params), float).ravel()
-        udot = np.linalg.solve(np.asarray(mass(q, u, params), float),
-                               np.asarray(forcing(q, u, params), float).ravel())
-        qdd = (np.asarray(d_rates_dq(q, u, params), float) @ qd
-               + np.asarray(d_rates_du(q, u, params), float) @ udot)
+        args = to_args(q, u, DISC)
+        qd = np.asarray(rates(*args), float).ravel()
+        udot = np.linalg.solve(np.asarray(mass(*args), float),
+                               np.asarray(forcing(*args), float).ravel())
         assert np.max(np.abs(system.velocity_violation(0.0, q, qd, DISC))) < 1e-12
-        ours = system.accelerations(0.0, q, qd, DISC)
-        assert_close(ours, qdd, rtol=1e-10, atol=1e-10)
+        qdd = np.asarray(system.accelerations(0.0, q, qd, DISC))
+        theta, theta_d, psi_d = q[3], qd[3], qd[2]
+        u3_dot = qdd[2] * np.cos(theta) - psi_d * theta_d * np.sin(theta)
+        u2_dot = qdd[4] + u3_dot * np.tan(theta) + u[2] * theta_d / np.cos(theta) ** 2
+        assert_close(np.array([qdd[3], u2_dot, u3_dot]), udot, rtol=1e-10, atol=1e-10)
         # the multipliers are the friction force at the contact: m a_G (horizontal part)
         a_centre = jax.jvp(lambda q, qd: jax.jvp(lambda q: centre(q, DISC), (q,), (qd,))[1],
                            (jnp.asarray(q), jnp.asarray(qd)),
-                           (jnp.asarray(qd), ours))[1]
+                           (jnp.asarray(qd), jnp.asarray(qdd)))[1]
         assert_close(system.multipliers(0.0, q, qd, DISC), DISC["m"] * a_centre[:2],
                      rtol=1e-10, atol=1e-10)

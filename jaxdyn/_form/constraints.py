@@ -10,7 +10,7 @@ import lineax as lx
 import numpy as np
 
 from .._convention import CONFIGURATION_ARGS, call, vector
-from .._dynamics import AbstractDynamics
+from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._errors import error_if
 from .._linalg import factorise, solve
 from .._state import check_vector, public_method
@@ -209,7 +209,7 @@ class Constrained(AbstractDynamics):
         return jacobian, rhs
 
     def _solve(self, t, q, u, p, *, small):
-        """(u̇, λ, mass_singular, constraints_singular, nonfinite)."""
+        """(u̇, λ, C, mass_singular, constraints_singular, nonfinite)."""
         mass_matrix, forcing = self.dynamics.form_equations(t, q, u, p)
         jacobian, rhs = self._right_hand_side(t, q, u, p)
         gram = jacobian.T @ jacobian
@@ -233,7 +233,8 @@ class Constrained(AbstractDynamics):
         nonfinite = ~jnp.all(jnp.isfinite(forcing)) | ~jnp.all(jnp.isfinite(rhs))
         failed = factors.singular | constraints_singular | nonfinite
         accelerations = jnp.where(failed, jnp.nan, accelerations)
-        return accelerations, multipliers, factors.singular, constraints_singular, nonfinite
+        return (accelerations, multipliers, jacobian, factors.singular, constraints_singular,
+                nonfinite)
 
     # -- AbstractDynamics ---------------------------------------------------------------------
 
@@ -247,13 +248,13 @@ class Constrained(AbstractDynamics):
 
     def form_accelerations(self, t, q, u, p=None, *, small):
         t, q, u = self._check(t, q, u)
-        accelerations, _, mass_singular, constraints_singular, nonfinite = self._solve(
+        accelerations, _, _, mass_singular, constraints_singular, nonfinite = self._solve(
             t, q, u, p, small=small)
         return accelerations, mass_singular | constraints_singular, nonfinite
 
     def singular_constraints(self, t, q, u, p=None):
         t, q, u = self._check(t, q, u)
-        _, _, mass_singular, constraints_singular, _ = self._solve(t, q, u, p, small=False)
+        _, _, _, mass_singular, constraints_singular, _ = self._solve(t, q, u, p, small=False)
         return constraints_singular & ~mass_singular
 
     def energy_terms(self, t, q, u, p=None):
@@ -281,8 +282,8 @@ class Constrained(AbstractDynamics):
     def constraint_forces(self, t, q, u, p=None):
         """Cᵀλ: the generalized constraint forces along the speeds."""
         t, q, u = self._check(t, q, u)
-        jacobian, _ = self._right_hand_side(t, q, u, p)
-        return jacobian.T @ self._solve(t, q, u, p, small=False)[1]
+        _, multipliers, jacobian, *_ = self._solve(t, q, u, p, small=False)
+        return jacobian.T @ multipliers
 
     @public_method("(),(n),(m)->(k,m)")
     def constraint_jacobian(self, t, q, u, p=None):
@@ -411,8 +412,6 @@ class IndependentSpeeds(AbstractDynamics):
         return basis.T @ mass_matrix @ basis, basis.T @ (forcing - mass_matrix @ drift)
 
     def form_accelerations(self, t, q, v, p=None, *, small):
-        from .._dynamics import accelerations_from_equations
-
         return accelerations_from_equations(self, t, q, v, p, small=small)
 
     def energy_terms(self, t, q, v, p=None):
