@@ -15,6 +15,15 @@ from ._form.constraints import (
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane
+from ._fit.experiment import Experiment as Experiment, MultipleShooting as MultipleShooting
+from ._fit.fit import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning, fit as fit
+from ._fit.parametrisation import (
+    AbstractParametrisation as AbstractParametrisation,
+    InertiaTensor as InertiaTensor,
+    Positive as Positive,
+    Unconstrained as Unconstrained,
+)
+from ._fit.uncertainty import Uncertainty as Uncertainty
 from ._integrate import simulate as simulate
 from ._solution import (
     RESULTS as RESULTS,

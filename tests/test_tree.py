@@ -86,7 +86,9 @@ def _pinocchio_case(name, floating, num_states=3, seed=0):
                 accelerations=np.stack(accelerations), permutation=permutation)
 
 
-ROBOTS = [("panda.urdf", False), ("solo12.urdf", True), ("talos_full_v2.urdf", True)]
+# The 50-joint humanoid is a stress test (about half a minute): `python -m pytest -m slow`.
+ROBOTS = [("panda.urdf", False), ("solo12.urdf", True),
+          pytest.param("talos_full_v2.urdf", True, marks=pytest.mark.slow)]
 
 
 @pytest.mark.parametrize("name, floating", ROBOTS)

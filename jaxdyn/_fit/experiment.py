@@ -1,0 +1,89 @@
+"""Measured data: experiments, and how a long horizon is cut into shooting segments."""
+
+from typing import Any, Callable
+
+import equinox as eqx
+import numpy as np
+
+
+class Experiment(eqx.Module):
+    """One measured trajectory.
+
+    **Arguments:**
+
+    - `ts`: the measurement times (k,), increasing; the motion starts at `ts[0]`.
+    - `observations`: the measurements (k, d) at `ts` (or (k,) for one observed quantity),
+      what `observe(t, q, u, p)` predicts; by default the coordinates q (d = n).
+    - `q0`, `u0`: the initial state at `ts[0]`: known, or a first guess when `jaxdyn.fit` fits
+      initial states too (`fit_initial_states=True`).
+    - `inputs`: what differs between experiments apart from the initial state (a torque
+      profile, a commanded trajectory): any pytree, or None. With inputs, the dynamics and
+      `observe` receive p = (params, inputs).
+    - `weights`: None (all 1) or non-negative weights broadcastable to (k, d), ideally the
+      inverse noise variances 1/σ²; a weight 0 drops a missing sample. Residuals are
+      √w (y − ŷ).
+    """
+
+    ts: Any
+    observations: Any
+    q0: Any
+    u0: Any
+    inputs: Any = None
+    weights: Any = None
+
+    def __init__(self, ts, observations, q0, u0, inputs=None, weights=None):
+        ts = np.asarray(ts, dtype=float)
+        observations = np.asarray(observations, dtype=float)
+        if observations.ndim == 1:
+            observations = observations[:, None]
+        if ts.ndim != 1 or ts.shape[0] < 2:
+            raise ValueError(f"ts must be 1-D with at least two times, got shape {ts.shape}.")
+        if not np.all(np.diff(ts) > 0):
+            raise ValueError("ts must be strictly increasing.")
+        if observations.ndim != 2 or observations.shape[0] != ts.shape[0]:
+            raise ValueError(f"observations must have shape (k, d) with k = len(ts) = "
+                             f"{ts.shape[0]}, got {observations.shape}.")
+        bad = np.nonzero(~np.all(np.isfinite(observations), axis=1))[0]
+        if bad.size:
+            raise ValueError(f"observations hold NaN or inf at rows {bad[:10].tolist()}; give "
+                             "a missing sample any finite value and weight 0.")
+        if weights is not None:
+            weights = np.broadcast_to(np.asarray(weights, dtype=float), observations.shape)
+            if not np.all(np.isfinite(weights)) or np.any(weights < 0):
+                raise ValueError("weights must be finite and non-negative.")
+        self.ts = ts
+        self.observations = observations
+        self.q0 = np.atleast_1d(np.asarray(q0, dtype=float))
+        self.u0 = np.atleast_1d(np.asarray(u0, dtype=float))
+        self.inputs = inputs
+        self.weights = weights
+
+
+class MultipleShooting(eqx.Module):
+    """Cut every experiment into `segments` shooting segments of equal numbers of samples.
+
+    Each segment starts from its own state (a *shooting node*, fitted with the parameters) and
+    integrates only to the next node; a continuity residual w·(x(end of segment) − next node)
+    ties the pieces together, and at the optimum they join into one trajectory (Bock and
+    Plitt, 1984). Over a long horizon, and above all for chaotic motion, a single simulation
+    from the initial state depends so sensitively on the parameters that the loss is a
+    landscape of narrow local minima; short segments keep it close to quadratic.
+
+    **Arguments:**
+
+    - `segments`: the number of segments; len(ts) − 1 must be divisible by it.
+    - `continuity_weight`: w, the weight of the continuity residuals relative to the
+      (weighted) observation residuals; large enough that the remaining gaps are small next to
+      the noise.
+    - `initial_nodes`: None, or a function (ts, observations) → (q (k, n), u (k, m)) giving a
+      state at every sample from the data (e.g. measured angles and rates), from which the
+      nodes start. With None, the nodes start on a simulation at the initial parameters.
+    """
+
+    segments: int = eqx.field(static=True)
+    continuity_weight: float = 100.0
+    initial_nodes: Callable | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.segments, int) or self.segments < 1:
+            raise ValueError(f"segments must be a positive integer, got {self.segments!r}.")

@@ -1,0 +1,464 @@
+"""`fit`: identify physical parameters from measured trajectories.
+
+The loop is optimistix's own solver protocol (init, then step until terminate), driven from
+Python one compiled step at a time, so that between steps a progress bar, a callback, a check
+for non-finite values and a checkpoint cost nothing on the device.
+"""
+
+import os
+import sys
+import time
+import warnings
+from typing import Any, Callable, Sequence
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import tqdm
+
+from .._dynamics import AbstractDynamics
+from .._errors import _where
+from .._integrate import simulate
+from .._state import numbers_as_arrays
+from .experiment import Experiment, MultipleShooting
+from .parametrisation import leaf_parametrisations
+from .residuals import (
+    TrajectoryMatching,
+    group_experiments,
+    least_squares_residuals,
+    observe_coordinates,
+    scalar_loss,
+)
+from .uncertainty import Uncertainty, analyse, flatten_latent, latent_names, parameter_names
+
+
+# Integration error far below measurement noise; 5th order keeps every Jacobian column cheap.
+SIMULATE_OPTIONS = {"solver": diffrax.Tsit5(), "rtol": 1e-8, "atol": 1e-8}
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The data cannot identify some parameters (`FitResult.uncertainty.unidentifiable`)."""
+
+
+class FitResult(eqx.Module):
+    """What `jaxdyn.fit` returns.
+
+    **Fields:**
+
+    - `params`: the fitted parameters (the whole tree: trained and frozen leaves).
+    - `initial_states`: per experiment, the initial state (q0, u0) (fitted or as given).
+    - `loss`: ½ Σ w (y − ŷ)² over all observations at the fitted values.
+    - `loss_history`: that loss at the iterate of every step.
+    - `predictions`: per experiment, the fitted model's observations at the data's times.
+    - `converged`: whether the optimiser's tolerance was met (else `max_steps` ran out or the
+      callback stopped the fit).
+    - `num_steps`, `num_accepted_steps` (least-squares solvers: steps that lowered the loss),
+      `wall_time` (seconds, compilation included).
+    - `uncertainty`: a `jaxdyn.Uncertainty` (standard errors, correlations, identifiability),
+      or None with `uncertainty=False`.
+    - `problem`, `latent`: the least-squares problem and the optimiser's unconstrained
+      variables (for `loss_at` and further analysis).
+    """
+
+    params: Any
+    initial_states: tuple
+    loss: float
+    loss_history: np.ndarray
+    predictions: tuple
+    converged: bool
+    num_steps: int
+    num_accepted_steps: int | None
+    wall_time: float
+    uncertainty: Uncertainty | None
+    problem: TrajectoryMatching
+    latent: Any
+
+    @property
+    def standard_errors(self):
+        """Standard errors shaped like the parameter tree (None for frozen leaves)."""
+        errors = iter(self.uncertainty.standard_errors)
+        leaves = jax.tree_util.tree_leaves(self.params)
+        out = [np.reshape([next(errors) for _ in range(np.size(x))], np.shape(x))
+               if trained else None for x, trained in zip(leaves, self.problem.trained)]
+        return jax.tree_util.tree_unflatten(self.problem.treedef, out)
+
+    def confidence_intervals(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Per parameter entry, the interval x̂ ± z σ̂ of the normal approximation at the
+        optimum (z = 1.96 for 95 %)."""
+        z = float(jax.scipy.special.ndtri(0.5 + level / 2))
+        values = np.concatenate([np.ravel(x) for x in self.problem.trained_leaves(self.params)])
+        errors = self.uncertainty.standard_errors
+        return {name: (float(v - z * e), float(v + z * e))
+                for name, v, e in zip(self.uncertainty.names, values, errors)}
+
+    def summary(self) -> str:
+        """A table of the fitted parameters with standard errors and 95 % intervals."""
+        lines = [f"loss {self.loss:.6g} after {self.num_steps} steps "
+                 f"({'converged' if self.converged else 'not converged'}, "
+                 f"{self.wall_time:.1f} s)"]
+        if self.uncertainty is None:
+            return "\n".join(lines)
+        intervals = self.confidence_intervals()
+        values = np.concatenate([np.ravel(x) for x in self.problem.trained_leaves(self.params)])
+        width = max(len(n) for n in self.uncertainty.names)
+        lines.append(f"{'parameter':<{width}}  {'value':>12}  {'std. error':>11}  95 % interval")
+        for name, v, e in zip(self.uncertainty.names, values,
+                              self.uncertainty.standard_errors):
+            low, high = intervals[name]
+            lines.append(f"{name:<{width}}  {v:12.6g}  {e:11.3g}  [{low:.6g}, {high:.6g}]")
+        lines.extend(self.uncertainty.unidentifiable)
+        return "\n".join(lines)
+
+    def loss_at(self, params):
+        """½ Σ w (y − ŷ)² at other parameter values, the fitted initial states and shooting
+        nodes kept: to draw the loss landscape around the optimum."""
+        latent = eqx.tree_at(lambda z: z["params"], self.latent,
+                             [s.to_latent(x, n) for s, x, n in zip(
+                                 self.problem.parametrisations,
+                                 self.problem.trained_leaves(numbers_as_arrays(params)),
+                                 parameter_names(self.problem, self.latent))])
+        return float(_evaluate(self.problem, latent)[1])
+
+
+def fit(
+    dynamics: AbstractDynamics,
+    experiments: Experiment | Sequence[Experiment],
+    params,
+    *,
+    filter_spec=eqx.is_inexact_array,
+    parametrisation=None,
+    observe: Callable | None = None,
+    fit_initial_states: bool = False,
+    shooting: MultipleShooting | None = None,
+    optimiser=None,
+    max_steps: int = 200,
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    simulate_options: dict | None = None,
+    uncertainty: bool = True,
+    identifiability_tolerance: float = 1e-7,
+    progress: bool | None = None,
+    callback: Callable | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 1,
+) -> FitResult:
+    """Fit parameters of `dynamics` to measured trajectories by trajectory matching:
+    minimise ½ Σᵢⱼ wᵢⱼ ‖yᵢⱼ − h(tᵢⱼ, q(tᵢⱼ), u(tᵢⱼ), p)‖² over the parameters p (and, if
+    asked, the initial states), where (q, u) solve the equations of motion from each
+    experiment's initial state.
+
+    **Arguments:**
+
+    - `dynamics`: any `jaxdyn.AbstractDynamics`.
+    - `experiments`: a `jaxdyn.Experiment` or a sequence of them; experiments of equal shapes
+      are simulated together under `vmap`.
+    - `params`: the parameter pytree at the initial guess (physical values).
+    - `filter_spec`: which leaves are trained, as for `equinox.partition`: a function of a leaf
+      or a pytree of bools (prefix of `params`); the rest stay fixed. Default: every floating
+      leaf.
+    - `parametrisation`: None, or a prefix tree of `params` with `jaxdyn.Positive()`,
+      `jaxdyn.Unconstrained()`, `jaxdyn.InertiaTensor()` or None (the default) at its leaves.
+      By default a leaf whose initial values are all positive stays positive (fitted as
+      exp z), any other is unconstrained.
+    - `observe`: h(t, q, u, p) → (d,), what was measured (a marker's position, some
+      coordinates); default: q.
+    - `fit_initial_states`: fit each experiment's (q0, u0) too, starting from the given ones.
+    - `shooting`: `jaxdyn.MultipleShooting(segments)` for long horizons and chaotic motion
+      (see its documentation); None integrates every experiment in one piece.
+    - `optimiser`: None for Levenberg–Marquardt (`optimistix.LevenbergMarquardt(rtol, atol)`),
+      any optimistix least-squares solver or minimiser, or any optax optimiser (run through
+      `optimistix.OptaxMinimiser(optimiser, rtol, atol)`). Levenberg–Marquardt is the default
+      because trajectory matching is a nonlinear least-squares problem: it uses the
+      Jacobian's Gauss–Newton curvature, converging in tens of steps where Adam takes
+      thousands (benchmarks/bench_fit.py).
+    - `max_steps`, `rtol`, `atol`: the step budget and tolerances of the optimiser.
+    - `adjoint`: how derivatives pass through the simulations. Default: forward mode
+      (`diffrax.ForwardMode()`, one Jacobian column per fitted unknown) for least-squares
+      solvers, which need the whole Jacobian of many residuals with respect to few
+      parameters; recursive checkpointing (`diffrax.RecursiveCheckpointAdjoint()`, one
+      reverse pass) for minimisers, which need one gradient. Another adjoint for a
+      least-squares solver forms the Jacobian in reverse mode, one row per residual.
+    - `simulate_options`: keywords for `jaxdyn.simulate` (solver, rtol, atol, max_steps, ...).
+      Default: `diffrax.Tsit5()` at rtol = atol = 1e-8, an integration error far below any
+      measurement noise, at about a third of the cost of `simulate`'s own 1e-10 default in
+      every residual and Jacobian evaluation.
+    - `uncertainty`: compute standard errors, correlations and identifiability at the optimum.
+    - `identifiability_tolerance`: singular values of the column-scaled Jacobian below this
+      fraction of the largest mark a direction the data cannot identify.
+    - `progress`: a tqdm progress bar; None shows it when running interactively (a terminal
+      or a notebook).
+    - `callback`: `callback(step, params, loss)` after every step (step counts from 1); return
+      True to stop.
+    - `checkpoint`: a file path. The optimiser's whole state is saved there (equinox
+      serialisation) every `checkpoint_every` steps; a fit started with an existing file
+      resumes from it and ends at the same parameters as an uninterrupted fit.
+
+    **Returns:** a `jaxdyn.FitResult`.
+    """
+    start_time = time.perf_counter()
+    experiments = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    if not experiments or not all(isinstance(e, Experiment) for e in experiments):
+        raise ValueError("experiments must be a jaxdyn.Experiment or a non-empty sequence of "
+                         "them.")
+    if not isinstance(dynamics, AbstractDynamics):
+        raise ValueError(f"dynamics must be a jaxdyn.AbstractDynamics, got "
+                         f"{type(dynamics).__name__}.")
+    shooting = MultipleShooting(1) if shooting is None else shooting
+    for i, e in enumerate(experiments):
+        if (e.ts.shape[0] - 1) % shooting.segments:
+            raise ValueError(f"Experiment {i} has {e.ts.shape[0]} samples: len(ts) − 1 = "
+                             f"{e.ts.shape[0] - 1} must be divisible by the "
+                             f"{shooting.segments} shooting segments.")
+    least_squares, solver = _solver(optimiser, rtol, atol)
+    if adjoint is None:
+        adjoint = (diffrax.ForwardMode() if least_squares
+                   else diffrax.RecursiveCheckpointAdjoint())
+    options = {"jac": "fwd" if isinstance(adjoint, diffrax.ForwardMode) else "bwd"}
+    problem, latent = _problem(dynamics, experiments, params, filter_spec, parametrisation,
+                               observe, fit_initial_states, shooting, simulate_options,
+                               adjoint)
+    fn = least_squares_residuals if least_squares else scalar_loss
+    state = _init(solver, fn, latent, problem, options)
+    iteration, history = 0, []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        iteration, latent, state, history = _load(checkpoint, latent, state, max_steps)
+
+    if progress is None:
+        progress = sys.stderr.isatty() or "ipykernel" in sys.modules
+    bar = tqdm.tqdm(total=max_steps, initial=iteration, disable=not progress, desc="fit",
+                    unit="step", file=sys.stderr, mininterval=0.5)
+    done = bool(iteration) and _terminated(solver, fn, latent, problem, options, state)
+    stopped = False
+    try:
+        while not done and iteration < max_steps:
+            previous = latent
+            try:
+                latent, state, loss, done = _step(solver, fn, latent, problem, options, state)
+                done = bool(done)
+            except Exception as error:
+                if not _where:
+                    raise
+                raise RuntimeError(f"At step {iteration + 1} of the fit: {_where.pop()}") \
+                    from error
+            iteration += 1
+            loss = float(loss)
+            if iteration == 1 and not np.isfinite(loss):  # the loss at the initial guess
+                raise ValueError("The simulations at the initial parameters fail (the loss is "
+                                 "not finite): check the initial guess and states, e.g. with "
+                                 "jaxdyn.simulate.")
+            if not (_finite(latent) and _finite(getattr(state, "y_eval", 0.0))):
+                raise FloatingPointError(_nonfinite_message(problem, previous, iteration))
+            history.append(loss)
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.4g}")
+            if checkpoint is not None and (done or iteration % checkpoint_every == 0):
+                _save(checkpoint, iteration, latent, state, history, max_steps)
+            if callback is not None and callback(iteration, problem.params(latent["params"]),
+                                                 loss):
+                stopped = True
+                break
+    finally:
+        bar.close()
+    if not done and not stopped:
+        last = history[-1] if history else float("nan")
+        warnings.warn(f"The fit did not converge in max_steps = {max_steps} steps (loss "
+                      f"{last:.6g}); raise max_steps or start closer.", RuntimeWarning,
+                      stacklevel=2)
+    return _result(problem, latent, state, history, done, iteration, uncertainty,
+                   identifiability_tolerance, start_time)
+
+
+def _solver(optimiser, rtol, atol):
+    """(is a least-squares solver, the optimistix solver)."""
+    if optimiser is None:
+        return True, optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    if isinstance(optimiser, optx.AbstractLeastSquaresSolver) and not isinstance(
+            optimiser, optx.AbstractMinimiser):
+        return True, optimiser
+    if isinstance(optimiser, optx.AbstractMinimiser):
+        return False, optimiser
+    if isinstance(optimiser, optax.GradientTransformation):
+        return False, optx.OptaxMinimiser(optimiser, rtol=rtol, atol=atol)
+    raise ValueError("optimiser must be None (Levenberg–Marquardt), an optimistix "
+                     "least-squares solver or minimiser, or an optax optimiser; got "
+                     f"{type(optimiser).__name__}.")
+
+
+def _problem(dynamics, experiments, params, filter_spec, parametrisation, observe,
+             fit_initial_states, shooting, simulate_options, adjoint):
+    """The `TrajectoryMatching` problem and the latent starting point."""
+    dtype = jnp.result_type(float)
+    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)
+                                    if isinstance(x, float) else x, params)
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if eqx.is_inexact_array(leaf) and not np.all(np.isfinite(np.asarray(leaf))):
+            raise ValueError(f"p{jax.tree_util.keystr(path)} holds NaN or inf.")
+    trained_tree, frozen = eqx.partition(params, filter_spec)
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    trained_flags = tuple(jax.tree_util.tree_leaves(
+        jax.tree_util.tree_map(lambda x: x is not None, trained_tree, is_leaf=lambda x: x is None)))
+    if len(trained_flags) != len(leaves) or not any(trained_flags):
+        raise ValueError("filter_spec selects no parameter to fit.")
+    all_specs = leaf_parametrisations(parametrisation, params)
+    names = [f"p{jax.tree_util.keystr(path)}"
+             for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+    specs, z_params = [], []
+    for spec, leaf, name, trained in zip(all_specs, leaves, names, trained_flags):
+        if trained:
+            if not eqx.is_inexact_array(leaf):
+                raise ValueError(f"{name} is selected for fitting but is not a floating-point "
+                                 "array.")
+            specs.append(spec)
+            z_params.append(spec.to_latent(leaf, name))
+    groups = group_experiments(experiments, dtype)
+    problem = TrajectoryMatching(
+        dynamics=dynamics, groups=groups, frozen=frozen, treedef=treedef,
+        trained=trained_flags, parametrisations=tuple(specs),
+        observe=observe_coordinates if observe is None else observe,
+        shooting=shooting, fit_initial_states=fit_initial_states,
+        simulate_options=numbers_as_arrays(_simulate_options(simulate_options), dtype),
+        adjoint=adjoint)
+    states = tuple((g.q0, g.u0) for g in groups) if fit_initial_states else None
+    latent = {"params": z_params, "states": states, "nodes": None}
+    if shooting.segments > 1:
+        latent["nodes"] = _initial_nodes(problem, latent, experiments)
+    return problem, latent
+
+
+def _simulate_options(given):
+    options = dict(SIMULATE_OPTIONS)
+    given = dict(given or {})
+    if "stepsize_controller" in given:  # it carries its own tolerances
+        del options["rtol"], options["atol"]
+    return {**options, **given}
+
+
+def _initial_nodes(problem, latent, experiments):
+    """Shooting nodes at the start of every segment but the first: from the data (the
+    user's `initial_nodes`) or from a simulation at the initial parameters."""
+    segments = problem.shooting.segments
+    nodes = []
+    for group, (q0, u0) in zip(problem.groups, problem.initial_states(latent)):
+        length = (group.ts.shape[1] - 1) // segments
+        at = np.arange(1, segments) * length
+        if problem.shooting.initial_nodes is not None:
+            states = [problem.shooting.initial_nodes(experiments[i].ts,
+                                                     experiments[i].observations)
+                      for i in group.indices]
+            q = jnp.stack([jnp.asarray(s[0])[at] for s in states]).astype(q0.dtype)
+            u = jnp.stack([jnp.asarray(s[1])[at] for s in states]).astype(u0.dtype)
+        else:
+            p = problem.params(latent["params"])
+            q, u = _simulated_states(problem, group, p, q0, u0, at)
+        nodes.append((q, u))
+    return tuple(nodes)
+
+
+@eqx.filter_jit
+def _simulated_states(problem, group, p, q0, u0, at):
+    def one(ts, q0, u0, inputs):
+        solution = simulate(problem.dynamics, q0, u0, p if inputs is None else (p, inputs),
+                            t0=ts[0], t1=ts[-1], ts=ts[at], save=("q", "u"), throw=False,
+                            **problem.simulate_options)
+        return solution.q, solution.u
+
+    return jax.vmap(one)(group.ts, q0, u0, group.inputs)
+
+
+@eqx.filter_jit
+def _evaluate(problem, latent):
+    """(per group the predicted observations, ½‖r_obs‖²)."""
+    predictions, _, observation = problem.evaluate(latent)
+    return predictions, 0.5 * jnp.sum(observation**2)
+
+
+@eqx.filter_jit
+def _init(solver, fn, latent, problem, options):
+    f_struct, aux_struct = jax.eval_shape(lambda z: fn(z, problem), latent)
+    return solver.init(fn, latent, problem, options, f_struct, aux_struct, frozenset())
+
+
+@eqx.filter_jit
+def _step(solver, fn, latent, problem, options, state):
+    latent, state, loss = solver.step(fn, latent, problem, options, state, frozenset())
+    done, _ = solver.terminate(fn, latent, problem, options, state, frozenset())
+    return latent, state, loss, done
+
+
+def _terminated(solver, fn, latent, problem, options, state):
+    return bool(solver.terminate(fn, latent, problem, options, state, frozenset())[0])
+
+
+def _finite(tree):
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree)
+               if eqx.is_inexact_array(x))
+
+
+def _nonfinite_message(problem, latent, iteration):
+    """Why the iterate became non-finite: the entries of the gradient at the last finite
+    iterate that are NaN or inf, by name."""
+    reverse = eqx.tree_at(lambda p: p.adjoint, problem, diffrax.RecursiveCheckpointAdjoint())
+    flat, unravel = flatten_latent(latent)
+    gradient = np.asarray(jax.grad(lambda f: scalar_loss(unravel(f), reverse)[0])(flat))
+    bad = [name for name, g in zip(latent_names(problem, latent), gradient)
+           if not np.isfinite(g)]
+    if bad:
+        return (f"The gradient of the loss is NaN or inf at step {iteration} of the fit, in "
+                f"{', '.join(bad)}. A parameter enters the equations where their derivative "
+                "is not finite (sqrt or log at 0, a division by a parameter that reaches 0).")
+    return (f"The fit produced non-finite values at step {iteration} although the gradient "
+            "is finite there: the residuals overflow; scale the data or the weights.")
+
+
+def _save(path, iteration, latent, state, history, max_steps):
+    padded = np.full(max_steps, np.nan)
+    padded[:len(history)] = history
+    temporary = f"{path}.partial"
+    eqx.tree_serialise_leaves(temporary, (np.asarray(iteration), latent, state, padded))
+    os.replace(temporary, path)  # atomic: an interruption never leaves half a checkpoint
+
+
+def _load(path, latent, state, max_steps):
+    like = (np.asarray(0), latent, state, np.full(max_steps, np.nan))
+    try:
+        iteration, latent, state, padded = eqx.tree_deserialise_leaves(path, like)
+    except Exception as error:
+        raise ValueError(f"The checkpoint {os.fspath(path)!r} does not belong to this fit "
+                         f"(another system, data or optimiser): {error}") from None
+    iteration = int(iteration)
+    return iteration, latent, state, [float(x) for x in padded[:iteration]]
+
+
+def _result(problem, latent, state, history, converged, iteration, uncertainty, tolerance,
+            start_time):
+    params = problem.params(latent["params"])
+    states = problem.initial_states(latent)
+    initial_states, predictions = {}, {}
+    if uncertainty:
+        report, predicted_groups, loss = analyse(problem, latent, tolerance)
+    else:
+        report = None
+        predicted_groups, loss = _evaluate(problem, latent)
+    for group, (q0, u0), predicted in zip(problem.groups, states, predicted_groups):
+        for k, i in enumerate(group.indices):
+            initial_states[i] = (q0[k], u0[k])
+            predictions[i] = predicted[k]
+    if report is not None and report.unidentifiable:
+        warnings.warn("\n".join(report.unidentifiable), IdentifiabilityWarning, stacklevel=3)
+    accepted = getattr(state, "num_accepted_steps", None)
+    return FitResult(
+        params=params,
+        initial_states=tuple(initial_states[i] for i in range(len(initial_states))),
+        loss=float(loss),
+        loss_history=np.asarray(history),
+        predictions=tuple(predictions[i] for i in range(len(predictions))),
+        converged=bool(converged), num_steps=iteration,
+        num_accepted_steps=None if accepted is None else int(accepted),
+        wall_time=time.perf_counter() - start_time, uncertainty=report, problem=problem,
+        latent=latent)
+

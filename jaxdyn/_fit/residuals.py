@@ -1,0 +1,188 @@
+"""Trajectory matching: the residuals between measured and simulated observations, as a function
+of unconstrained latent variables (parameters, initial states, shooting nodes).
+
+    r = [ √w (y_ij − h(t_ij, q(t_ij), u(t_ij), p)) ;  w_c (x_s(end) − x_{s+1}) ],
+
+where the first block runs over the experiments i and their samples j, and the second (multiple
+shooting only) over the joints between consecutive segments.
+"""
+
+from typing import Any, Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._dynamics import AbstractDynamics
+from .._integrate import simulate
+from .experiment import Experiment, MultipleShooting
+from .parametrisation import AbstractParametrisation
+
+
+def observe_coordinates(t, q, u, p):
+    """The default observation: the coordinates q."""
+    return q
+
+
+class ExperimentGroup(eqx.Module):
+    """Experiments of identical shapes, stacked along a leading axis (simulated with vmap)."""
+
+    indices: tuple[int, ...] = eqx.field(static=True)
+    ts: Any  # (E, k)
+    observations: Any  # (E, k, d)
+    sqrt_weights: Any  # (E, k, d)
+    q0: Any  # (E, n)
+    u0: Any  # (E, m)
+    inputs: Any  # stacked pytree, or None
+
+
+def _shape_key(experiment: Experiment):
+    leaves, treedef = jax.tree_util.tree_flatten(experiment.inputs)
+    return (experiment.ts.shape, experiment.observations.shape, experiment.q0.shape,
+            experiment.u0.shape, treedef, tuple(np.shape(x) for x in leaves))
+
+
+def group_experiments(experiments, dtype) -> tuple[ExperimentGroup, ...]:
+    """Group experiments by shape, in order of first appearance."""
+    keys = {}
+    for i, experiment in enumerate(experiments):
+        keys.setdefault(_shape_key(experiment), []).append(i)
+    groups = []
+    for indices in keys.values():
+        members = [experiments[i] for i in indices]
+
+        def stack(get):
+            return jnp.asarray(np.stack([get(e) for e in members]), dtype)
+
+        inputs = None
+        if members[0].inputs is not None:
+            inputs = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
+                                            *[e.inputs for e in members])
+        groups.append(ExperimentGroup(
+            indices=tuple(indices),
+            ts=stack(lambda e: e.ts),
+            observations=stack(lambda e: e.observations),
+            sqrt_weights=stack(lambda e: np.ones_like(e.observations) if e.weights is None
+                               else np.sqrt(e.weights)),
+            q0=stack(lambda e: e.q0),
+            u0=stack(lambda e: e.u0),
+            inputs=inputs))
+    return tuple(groups)
+
+
+class TrajectoryMatching(eqx.Module):
+    """The least-squares problem that `jaxdyn.fit` solves.
+
+    Latent variables z = {"params": latent leaves of the trained parameters, "states": per
+    group (q0, u0) when initial states are fitted, else None, "nodes": per group the shooting
+    nodes (q, u) of shape (E, segments − 1, ·), else None}.
+    """
+
+    dynamics: AbstractDynamics
+    groups: tuple[ExperimentGroup, ...]
+    frozen: Any  # the parameter tree with trained leaves replaced by None
+    treedef: Any = eqx.field(static=True)  # of the full parameter tree
+    trained: tuple[bool, ...] = eqx.field(static=True)  # per leaf of the parameter tree
+    parametrisations: tuple[AbstractParametrisation, ...]  # per trained leaf
+    observe: Callable = eqx.field(static=True)
+    shooting: MultipleShooting
+    fit_initial_states: bool = eqx.field(static=True)
+    simulate_options: dict
+    adjoint: diffrax.AbstractAdjoint
+
+    # -- latent ↔ physical --------------------------------------------------------------------
+
+    def params(self, z_params):
+        """The full parameter tree (physical values) from the trained leaves' latent values."""
+        physical = iter([s.to_physical(x) for s, x in zip(self.parametrisations, z_params)])
+        frozen = iter(jax.tree_util.tree_leaves(self.frozen))
+        leaves = [next(physical) if trained else next(frozen) for trained in self.trained]
+        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+
+    def trained_leaves(self, params):
+        leaves = jax.tree_util.tree_leaves(params)
+        return [x for x, trained in zip(leaves, self.trained) if trained]
+
+    def initial_states(self, z):
+        """Per group, (q0, u0) stacked over its experiments."""
+        if z["states"] is not None:
+            return z["states"]
+        return tuple((g.q0, g.u0) for g in self.groups)
+
+    # -- predictions and residuals ------------------------------------------------------------
+
+    def _segments(self, ts, params, q0, u0, inputs, nodes):
+        """Observations predicted along one experiment, and the continuity gaps."""
+        p = params if inputs is None else (params, inputs)
+        segments = self.shooting.segments
+        length = (ts.shape[0] - 1) // segments
+        index = np.arange(segments)[:, None] * length + np.arange(length + 1)
+        t_segments = ts[index]
+        if nodes is None:
+            starts = (q0[None], u0[None])
+        else:
+            starts = (jnp.concatenate([q0[None], nodes[0]]),
+                      jnp.concatenate([u0[None], nodes[1]]))
+
+        def segment(t, q_start, u_start):
+            solution = simulate(self.dynamics, q_start, u_start, p, t0=t[0], t1=t[-1], ts=t,
+                                save=("q", "u"), adjoint=self.adjoint, throw=False,
+                                **self.simulate_options)
+            observed = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(
+                t, solution.q, solution.u, p)
+            return observed, solution.q[-1], solution.u[-1]
+
+        observed, q_end, u_end = jax.vmap(segment)(t_segments, *starts)
+        predicted = jnp.concatenate([
+            observed[:, :length].reshape(segments * length, -1), observed[-1, length:]])
+        gaps = None
+        if nodes is not None:
+            gaps = jnp.concatenate([(q_end[:-1] - nodes[0]).ravel(),
+                                    (u_end[:-1] - nodes[1]).ravel()])
+        return predicted, gaps
+
+    def predictions(self, z):
+        """Per group, the predicted observations (E, k, d) and continuity gaps (or None)."""
+        params = self.params(z["params"])
+        states = self.initial_states(z)
+        out = []
+        for i, group in enumerate(self.groups):
+            nodes = None if z["nodes"] is None else z["nodes"][i]
+            out.append(jax.vmap(self._segments, in_axes=(0, None, 0, 0, 0, 0))(
+                group.ts, params, *states[i], group.inputs, nodes))
+        return out
+
+    def evaluate(self, z):
+        """(per group the predicted observations (E, k, d), r as one vector, the observation
+        residuals alone)."""
+        observation, continuity, predictions = [], [], []
+        for group, (predicted, gaps) in zip(self.groups, self.predictions(z)):
+            if predicted.shape != group.observations.shape:
+                raise ValueError(
+                    f"observe returns {predicted.shape[-1]} values per sample but the "
+                    f"observations have {group.observations.shape[-1]} (experiments "
+                    f"{list(group.indices)}).")
+            predictions.append(predicted)
+            observation.append((group.sqrt_weights * (predicted - group.observations)).ravel())
+            if gaps is not None:
+                continuity.append(self.shooting.continuity_weight * gaps.ravel())
+        observation = jnp.concatenate(observation)
+        return predictions, jnp.concatenate([observation, *continuity]), observation
+
+    def residuals(self, z):
+        """(r, observation residuals alone): r as one vector."""
+        return self.evaluate(z)[1:]
+
+
+def least_squares_residuals(z, problem: TrajectoryMatching):
+    """r(z) for a least-squares solver, with ½‖r_observations‖² as auxiliary output."""
+    residuals, observation = problem.residuals(z)
+    return residuals, 0.5 * jnp.sum(observation**2)
+
+
+def scalar_loss(z, problem: TrajectoryMatching):
+    """½‖r(z)‖² for a minimiser (optax, BFGS), with ½‖r_observations‖² as auxiliary output."""
+    residuals, observation = problem.residuals(z)
+    return 0.5 * jnp.sum(residuals**2), 0.5 * jnp.sum(observation**2)
