@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import optimistix as optx
 import pytest
 from scipy.integrate import solve_ivp
 
@@ -138,6 +139,17 @@ def test_optax_optimiser_and_reverse_mode():
                                 max_steps=300, uncertainty=False)
     assert result.loss_history[-1] < 1e-3 * result.loss_history[0]
     assert abs(float(result.params["k"]) - 4.0) < 0.02
+
+
+def test_minimiser_whose_trial_step_overflows_a_parameter():
+    """BFGS's first trial step is the raw gradient (order 1e5 here): exp of it overflows the
+    stiffness. That trial point must be rejected by the line search (infinite residuals), not
+    stop the fit."""
+    result = fit_oscillator(oscillator_experiment(), uncertainty=False,
+                            optimiser=optx.BFGS(rtol=1e-8, atol=1e-8))
+    assert result.converged
+    for key in ("k", "c"):
+        assert abs(float(result.params[key]) - OSCILLATOR_TRUTH[key]) < 0.01
 
 
 def test_fit_gradient_matches_finite_differences(oscillator_fit):

@@ -146,12 +146,20 @@ class TrajectoryMatching(eqx.Module):
     def predictions(self, z):
         """Per group, the predicted observations (E, k, d) and continuity gaps (or None)."""
         params = self.params(z["params"])
+        # A trial point of an optimiser may overflow a parameter (exp of a long step): its
+        # residuals are then infinite, for the step to be rejected, rather than an error.
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in
+                                    jax.tree_util.tree_leaves(params) if eqx.is_inexact_array(x)]))
+        params = jax.tree_util.tree_map(
+            lambda x: jnp.where(finite, x, jnp.ones_like(x)) if eqx.is_inexact_array(x) else x,
+            params)
         states = self.initial_states(z)
         out = []
         for i, group in enumerate(self.groups):
             nodes = None if z["nodes"] is None else z["nodes"][i]
-            out.append(jax.vmap(self._segments, in_axes=(0, None, 0, 0, 0, 0))(
-                group.ts, params, *states[i], group.inputs, nodes))
+            predicted, gaps = jax.vmap(self._segments, in_axes=(0, None, 0, 0, 0, 0))(
+                group.ts, params, *states[i], group.inputs, nodes)
+            out.append((jnp.where(finite, predicted, jnp.inf), gaps))
         return out
 
     def evaluate(self, z):
