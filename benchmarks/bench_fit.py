@@ -2,11 +2,12 @@
 Gauss–Newton, BFGS and Adam on the same problems, and what one derivative of the trajectory
 loss costs next to one simulation.
 
-Run: python benchmarks/bench_fit.py            (about 6 minutes)
+Run: python benchmarks/bench_fit.py            (3–5 minutes on the shared 2-core machine)
      python benchmarks/bench_fit.py --quick    (the oscillator's fits and the derivative costs,
                                                 about 2 minutes)
      options: --learning-rate (Adam's, 0.05), --adam-steps (3000), --sweep (Adam's steps to
-     1e-3 at other learning rates too), --rounds (of the derivative timings, 9)
+     1e-3 at other learning rates too: 10–15 minutes more), --rounds (of the derivative
+     timings, 9)
 
 Problems (data from SciPy's `solve_ivp`, DOP853 at 1e-12, on equations written by hand, never
 from jaxdyn; seeded Gaussian noise σ = 0.01, weights 1/σ²):
