@@ -387,6 +387,13 @@ class _Projected(diffrax.AbstractWrappedSolver):
     def order(self, terms):
         return self.solver.order(terms)
 
+    def __getattr__(self, name):
+        # Options a diffrax adjoint sets on Runge–Kutta solvers (ForwardMode replaces
+        # `scan_kind`) are the wrapped solver's own.
+        if name == "scan_kind":
+            return getattr(self.solver, name)
+        raise AttributeError(name)
+
     def strong_order(self, terms):
         return self.solver.strong_order(terms)
 

@@ -495,3 +495,30 @@ def test_rolling_disc_as_pfaffian_constraints_matches_sympy_kanes_method():
                            (jnp.asarray(qd), jnp.asarray(qdd)))[1]
         assert_close(system.multipliers(0.0, q, qd, DISC), DISC["m"] * a_centre[:2],
                      rtol=1e-10, atol=1e-10)
+
+
+def test_forward_mode_through_a_projected_solve():
+    """diffrax's ForwardMode adjoint through the projection-wrapped solver: the derivative of
+    a bead's position on a circle of radius l with respect to l, against reverse mode and a
+    central difference."""
+    def kinetic(q, qd, p):
+        return 0.5 * qd @ qd
+
+    def potential(q, p):
+        return 9.81 * q[1]
+
+    def circle(q, p):
+        return jnp.stack([q @ q - p["l"] ** 2])
+
+    bead = jaxdyn.Constrained(jaxdyn.Lagrangian(kinetic, potential), holonomic=circle)
+
+    def end(l, adjoint):
+        return jaxdyn.simulate(bead, jnp.stack([l, 0.0]), jnp.zeros(2), {"l": l}, t1=0.5,
+                               adjoint=adjoint).q[-1]
+
+    forward = jax.jacfwd(lambda l: end(l, diffrax.ForwardMode()))(1.0)
+    reverse = jax.jacrev(lambda l: end(l, diffrax.RecursiveCheckpointAdjoint()))(1.0)
+    h = 1e-6
+    central = (end(1.0 + h, diffrax.ForwardMode()) - end(1.0 - h, diffrax.ForwardMode())) / (2 * h)
+    np.testing.assert_allclose(forward, reverse, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(forward, central, rtol=1e-6, atol=1e-8)
