@@ -129,6 +129,7 @@ def test_callback_stops_the_fit():
     assert result.num_steps == 3 and not result.converged
 
 
+@pytest.mark.slow
 def test_optax_optimiser_and_reverse_mode():
     """Any optax optimiser, through optimistix.OptaxMinimiser, with a reverse-mode gradient."""
     # optax's bias correction raises a Python float to an int32 power, which the suite's
@@ -141,6 +142,7 @@ def test_optax_optimiser_and_reverse_mode():
     assert abs(float(result.params["k"]) - 4.0) < 0.02
 
 
+@pytest.mark.slow
 def test_minimiser_whose_trial_step_overflows_a_parameter():
     """BFGS's first trial step is the raw gradient (order 1e5 here): exp of it overflows the
     stiffness. That trial point must be rejected by the line search (infinite residuals), not
@@ -152,6 +154,7 @@ def test_minimiser_whose_trial_step_overflows_a_parameter():
         assert abs(float(result.params[key]) - OSCILLATOR_TRUTH[key]) < 0.01
 
 
+@pytest.mark.slow
 def test_fit_gradient_matches_finite_differences(oscillator_fit):
     """The derivatives the optimisers use — the forward-mode Jacobian (Gauss–Newton) and the
     reverse-mode gradient (optax) of ½‖r‖² through the parametrisation and the solve —
@@ -247,6 +250,7 @@ def pendulum_data(q0, ts, amplitude=0.0, frequency=1.0):
     return solution.y.T
 
 
+@pytest.mark.slow
 def test_double_pendulum_masses_and_lengths_from_several_experiments():
     """Three experiments (two of one length, simulated together under vmap, one longer),
     each driven by a known torque: the torque fixes the mass scale, so both masses and both
@@ -274,6 +278,7 @@ def test_double_pendulum_masses_and_lengths_from_several_experiments():
         assert error < 0.05 * truth
 
 
+@pytest.mark.slow
 def test_partial_observation_through_an_observation_function():
     """Only the horizontal position of the lower mass is measured (a marker seen by one
     camera axis), and the initial speeds are unknown: the lengths and initial speeds are
@@ -322,6 +327,7 @@ def test_unidentifiable_combination_is_named():
     assert abs(ratio - 0.8) < 1e-6
 
 
+@pytest.mark.slow
 def test_parameter_without_effect_is_named():
     """A simple pendulum's mass cancels from θ̈ = −(g/l) sin θ: its Jacobian column is
     round-off, which must be reported rather than magnified by column scaling."""

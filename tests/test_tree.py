@@ -202,7 +202,7 @@ def chain_by_hand(theta, omega):
     return np.linalg.solve(mass, forcing)
 
 
-@pytest.mark.parametrize("n", [3, 20])
+@pytest.mark.parametrize("n", [3, pytest.param(20, marks=pytest.mark.slow)])
 def test_chain_against_hand_written_equations(n, monkeypatch):
     """Relative joint angles q: θ = cumsum(q), θ̈ = cumsum(q̈). N = 3 runs the recursions as a
     Python loop, N = 20 as a scan (the form for chains: the carry is the parent's state); and
@@ -347,6 +347,7 @@ def _floating_arm():
     ])
 
 
+@pytest.mark.slow
 def test_free_floating_tree_conserves_energy_and_momentum():
     tree = _floating_arm()
     dynamics = jaxdyn.ArticulatedBody(tree)
