@@ -55,6 +55,9 @@ class Experiment(eqx.Module):
         self.observations = observations
         self.q0 = np.atleast_1d(np.asarray(q0, dtype=float))
         self.u0 = np.atleast_1d(np.asarray(u0, dtype=float))
+        for name, x in (("q0", self.q0), ("u0", self.u0)):
+            if x.ndim != 1 or not np.all(np.isfinite(x)):
+                raise ValueError(f"{name} must be a finite 1-D array, got {x.tolist()}.")
         self.inputs = inputs
         self.weights = weights
 
@@ -72,9 +75,11 @@ class MultipleShooting(eqx.Module):
     **Arguments:**
 
     - `segments`: the number of segments; len(ts) − 1 must be divisible by it.
-    - `continuity_weight`: w, the weight of the continuity residuals relative to the
-      (weighted) observation residuals; large enough that the remaining gaps are small next to
-      the noise.
+    - `continuity_weight`: w; a continuity residual w·gap is in the units of the weighted
+      observation residuals √w_obs·error, so with weights 1/σ² a gap costs as much as an
+      observation error w σ times larger. Too small a w lets the segments part at the
+      optimum and biases it (choose w well above 1/σ); too large a one makes the problem
+      ill-conditioned for Levenberg–Marquardt. The default suits σ ≈ 0.01.
     - `initial_nodes`: None, or a function (ts, observations) → (q (k, n), u (k, m)) giving a
       state at every sample from the data (e.g. measured angles and rates), from which the
       nodes start. With None, the nodes start on a simulation at the initial parameters.

@@ -22,7 +22,6 @@ import tqdm
 
 from .._dynamics import AbstractDynamics
 from .._errors import _where
-from .._integrate import simulate
 from .._state import numbers_as_arrays
 from .experiment import Experiment, MultipleShooting
 from .parametrisation import leaf_parametrisations
@@ -238,7 +237,9 @@ def fit(
         while not done and iteration < max_steps:
             previous = latent
             try:
-                latent, state, loss, done = _step(solver, fn, latent, problem, options, state)
+                latent, state, loss, done, finite = _step(solver, fn, latent, problem, options,
+                                                          state)
+                loss, done, finite = jax.device_get((loss, done, finite))  # one sync per step
                 done = bool(done)
             except Exception as error:
                 if not _where:
@@ -251,7 +252,7 @@ def fit(
                 raise ValueError("The simulations at the initial parameters fail (the loss is "
                                  "not finite): check the initial guess and states, e.g. with "
                                  "jaxdyn.simulate.")
-            if not (_finite(latent) and _finite(getattr(state, "y_eval", 0.0))):
+            if not finite:
                 raise FloatingPointError(_nonfinite_message(problem, previous, iteration))
             history.append(loss)
             bar.update(1)
@@ -361,13 +362,9 @@ def _initial_nodes(problem, latent, experiments):
 
 @eqx.filter_jit
 def _simulated_states(problem, group, p, q0, u0, at):
-    def one(ts, q0, u0, inputs):
-        solution = simulate(problem.dynamics, q0, u0, p if inputs is None else (p, inputs),
-                            t0=ts[0], t1=ts[-1], ts=ts[at], save=("q", "u"), throw=False,
-                            **problem.simulate_options)
-        return solution.q, solution.u
-
-    return jax.vmap(one)(group.ts, q0, u0, group.inputs)
+    q, u = jax.vmap(problem.solve, in_axes=(None, 0, 0, 0, 0))(p, group.inputs, q0, u0,
+                                                               group.ts)
+    return q[:, at], u[:, at]
 
 
 @eqx.filter_jit
@@ -387,16 +384,16 @@ def _init(solver, fn, latent, problem, options):
 def _step(solver, fn, latent, problem, options, state):
     latent, state, loss = solver.step(fn, latent, problem, options, state, frozenset())
     done, _ = solver.terminate(fn, latent, problem, options, state, frozenset())
-    return latent, state, loss, done
+    # The accepted iterate and (least-squares solvers) the next trial point: a non-finite
+    # Jacobian or gradient shows in them first.
+    proposed = [x for x in jax.tree_util.tree_leaves((latent, getattr(state, "y_eval", None)))
+                if eqx.is_inexact_array(x)]
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in proposed]))
+    return latent, state, loss, done, finite
 
 
 def _terminated(solver, fn, latent, problem, options, state):
     return bool(solver.terminate(fn, latent, problem, options, state, frozenset())[0])
-
-
-def _finite(tree):
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree)
-               if eqx.is_inexact_array(x))
 
 
 def _nonfinite_message(problem, latent, iteration):

@@ -113,6 +113,15 @@ class TrajectoryMatching(eqx.Module):
 
     # -- predictions and residuals ------------------------------------------------------------
 
+    def solve(self, params, inputs, q0, u0, ts):
+        """(q, u) at the times ts from (q0, u0) at ts[0]: one simulation (failures give
+        infinite states, so that an optimiser rejects the trial point)."""
+        p = params if inputs is None else (params, inputs)
+        solution = simulate(self.dynamics, q0, u0, p, t0=ts[0], t1=ts[-1], ts=ts,
+                            save=("q", "u"), adjoint=self.adjoint, throw=False,
+                            **self.simulate_options)
+        return solution.q, solution.u
+
     def _segments(self, ts, params, q0, u0, inputs, nodes):
         """Observations predicted along one experiment, and the continuity gaps."""
         p = params if inputs is None else (params, inputs)
@@ -127,12 +136,9 @@ class TrajectoryMatching(eqx.Module):
                       jnp.concatenate([u0[None], nodes[1]]))
 
         def segment(t, q_start, u_start):
-            solution = simulate(self.dynamics, q_start, u_start, p, t0=t[0], t1=t[-1], ts=t,
-                                save=("q", "u"), adjoint=self.adjoint, throw=False,
-                                **self.simulate_options)
-            observed = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(
-                t, solution.q, solution.u, p)
-            return observed, solution.q[-1], solution.u[-1]
+            q, u = self.solve(params, inputs, q_start, u_start, t)
+            observed = jax.vmap(self.observe, in_axes=(0, 0, 0, None))(t, q, u, p)
+            return observed, q[-1], u[-1]
 
         observed, q_end, u_end = jax.vmap(segment)(t_segments, *starts)
         predicted = jnp.concatenate([

@@ -90,13 +90,15 @@ def _linearisation(problem: TrajectoryMatching, z):
     mode."""
     problem = eqx.tree_at(lambda p: p.adjoint, problem, diffrax.ForwardMode())
     flat, unravel = flatten_latent(z)
-    residuals = lambda f: problem.residuals(unravel(f))  # noqa: E731
     physical = lambda f: ravel_pytree(problem.trained_leaves(  # noqa: E731
         problem.params(unravel(f)["params"])))[0]
     num_params = ravel_pytree(z["params"])[0].size
-    predictions, r_all, r_obs = problem.evaluate(z)
-    return (jax.jacfwd(lambda f: residuals(f)[0])(flat), r_all, r_obs,
-            jax.jacfwd(physical)(flat)[:, :num_params], predictions)
+    def residuals(f):  # r, with the evaluation it came from (one pass for both)
+        predictions, r_all, r_obs = problem.evaluate(unravel(f))
+        return r_all, (r_all, r_obs, predictions)
+
+    jacobian, (r_all, r_obs, predictions) = jax.jacfwd(residuals, has_aux=True)(flat)
+    return (jacobian, r_all, r_obs, jax.jacfwd(physical)(flat)[:, :num_params], predictions)
 
 
 def analyse(problem: TrajectoryMatching, z, tolerance: float):
