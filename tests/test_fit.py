@@ -264,7 +264,6 @@ def pendulum_data(q0, ts, amplitude=0.0, frequency=1.0):
     return solution.y.T
 
 
-@pytest.mark.slow
 def test_double_pendulum_masses_and_lengths_from_several_experiments():
     """Three experiments (two of one length, simulated together under vmap, one longer),
     each driven by a known torque: the torque fixes the mass scale, so both masses and both
@@ -292,7 +291,6 @@ def test_double_pendulum_masses_and_lengths_from_several_experiments():
         assert error < 0.05 * truth
 
 
-@pytest.mark.slow
 def test_partial_observation_through_an_observation_function():
     """Only the horizontal position of the lower mass is measured (a marker seen by one
     camera axis), and the initial speeds are unknown: the lengths and initial speeds are
@@ -363,7 +361,6 @@ def test_parameter_without_effect_is_named():
     assert np.isfinite(result.standard_errors["l"])
 
 
-@pytest.mark.slow
 def test_chaotic_horizon_needs_multiple_shooting():
     """Eight seconds of a chaotic double pendulum: a single simulation from the initial state
     is so sensitive to the parameters that Levenberg–Marquardt stalls in a local minimum far
@@ -419,7 +416,6 @@ def test_inertia_parametrisation_is_physical_for_every_latent_value():
         inertia.to_latent(jnp.diag(jnp.array([1.0, 1.0, 3.0])), "p['I']")
 
 
-@pytest.mark.slow
 def test_inertia_tensor_fitted_from_gyro_data_stays_physical():
     """A heavy top on a ball joint (mass and centre of mass known) measured by a gyroscope
     (body angular velocity): the full inertia tensor is fitted, and every iterate is a
