@@ -53,9 +53,12 @@ jax.config.update("jax_enable_x64", True)
 import jaxdyn  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
+# The torque-driven double pendulum and its hand-derived equations, shared with the tests.
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), os.pardir, "tests"))
 from _timing import compile_seconds, interleaved  # noqa: E402
+from fit_systems import PENDULUM, PENDULUM_TRUTH, pendulum_data  # noqa: E402
 
-G, SIGMA, TARGET = 9.81, 0.01, 1e-3
+SIGMA, TARGET = 0.01, 1e-3
 SIMULATE = {"solver": diffrax.Tsit5(), "rtol": 1e-8, "atol": 1e-8}  # jaxdyn.fit's default
 
 # -- the damped oscillator ------------------------------------------------------------------
@@ -81,59 +84,14 @@ def oscillator_problem():
 
 # -- the double pendulum, driven at the first joint -----------------------------------------
 
-PENDULUM_TRUTH = {"m1": 1.0, "m2": 0.8, "l1": 1.0, "l2": 0.7}
 PENDULUM_GUESS = {"m1": 1.3, "m2": 0.6, "l1": 0.8, "l2": 0.9}
 TORQUE = {"A": 2.0, "w": 1.5}
 PENDULUM_Q0 = (0.5, -0.3)
 
 
-def pendulum_rhs(amplitude, frequency):
-    """Hand-derived: M(θ) θ̈ = f for point masses on massless rods, angles from the downward
-    vertical, torque τ = A sin(ω t) at the first joint (as in tests/test_fit.py)."""
-    m1, m2, l1, l2 = (PENDULUM_TRUTH[k] for k in ("m1", "m2", "l1", "l2"))
-
-    def rhs(t, y):
-        a, b, ad, bd = y
-        c, s = np.cos(a - b), np.sin(a - b)
-        mass = np.array([[(m1 + m2) * l1**2, m2 * l1 * l2 * c],
-                         [m2 * l1 * l2 * c, m2 * l2**2]])
-        force = np.array([
-            -m2 * l1 * l2 * bd**2 * s - (m1 + m2) * G * l1 * np.sin(a)
-            + amplitude * np.sin(frequency * t),
-            m2 * l1 * l2 * ad**2 * s - m2 * G * l2 * np.sin(b)])
-        return np.concatenate([[ad, bd], np.linalg.solve(mass, force)])
-
-    return rhs
-
-
-def _positions(q, p):
-    first = p["l1"] * jnp.stack([jnp.sin(q[0]), -jnp.cos(q[0])])
-    return first, first + p["l2"] * jnp.stack([jnp.sin(q[1]), -jnp.cos(q[1])])
-
-
-def _pendulum_T(t, q, qd, p):
-    v1, v2 = jax.jvp(lambda q: _positions(q, p[0]), (q,), (qd,))[1]
-    return 0.5 * p[0]["m1"] * v1 @ v1 + 0.5 * p[0]["m2"] * v2 @ v2
-
-
-def _pendulum_V(t, q, p):
-    first, second = _positions(q, p[0])
-    return G * (p[0]["m1"] * first[1] + p[0]["m2"] * second[1])
-
-
-def _pendulum_Q(t, q, qd, p):
-    return jnp.stack([p[1]["A"] * jnp.sin(p[1]["w"] * t), jnp.zeros_like(t)])
-
-
-PENDULUM = jaxdyn.Lagrangian(kinetic=_pendulum_T, potential=_pendulum_V, forces=_pendulum_Q,
-                             time_dependent=True)
-
-
 def pendulum_problem():
     ts = np.linspace(0.0, 5.0, 101)
-    angles = solve_ivp(pendulum_rhs(TORQUE["A"], TORQUE["w"]), (0.0, 5.0),
-                       [*PENDULUM_Q0, 0.0, 0.0], t_eval=ts, rtol=1e-12, atol=1e-12,
-                       method="DOP853").y[:2].T
+    angles = pendulum_data(PENDULUM_Q0, ts, TORQUE["A"], TORQUE["w"])[:, :2]
     noisy = angles + SIGMA * np.random.default_rng(2).standard_normal(angles.shape)
     experiment = jaxdyn.Experiment(ts, noisy, q0=PENDULUM_Q0, u0=[0.0, 0.0], inputs=TORQUE,
                                    weights=1 / SIGMA**2)
