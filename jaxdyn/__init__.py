@@ -25,6 +25,7 @@ from ._fit.parametrisation import (
 )
 from ._fit.uncertainty import Uncertainty as Uncertainty
 from ._integrate import simulate as simulate
+from ._batch import simulate_batch as simulate_batch
 from ._solution import (
     RESULTS as RESULTS,
     ConstraintRecord as ConstraintRecord,

@@ -33,7 +33,8 @@ def error_if(x, checks, state=None, *, failed=None):
     only evaluated in the branch taken on failure: detecting a failure then costs as little as
     computing `failed` (say, a NaN in `x`), and finding its cause costs nothing until it
     happens. `state`: None, or (t, q, u) to end the message with "It happened at t = …, q =
-    […], u = […]." (under vmap, the state of the first failing batch member).
+    […], u = […]." (under vmap, the state of the first failing batch member), or a dict of
+    labelled values to end it with "It happened at label = …, …".
 
     Values and derivatives of `x` pass through unchanged: the branch sees its inputs through
     `stop_gradient`, and only a boolean (False) comes back from it.
@@ -44,12 +45,16 @@ def error_if(x, checks, state=None, *, failed=None):
     messages = tuple(message for _, message in checks())
     if failed is None:
         failed = jnp.any(_preds(checks))
-    state = () if state is None else tuple(state)
+    if state is None:
+        state = {}
+    elif not isinstance(state, dict):
+        state = dict(zip("tqu", state))
+    labels, state = tuple(state), tuple(state.values())
 
     def fail():
         preds = jax.lax.stop_gradient(_preds(checks))
         values = jax.lax.stop_gradient(state)
-        raise_ = functools.partial(_raise, messages, len(state) > 0)
+        raise_ = functools.partial(_raise, messages, labels)
         return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds, *values,
                                  vmap_method="sequential")
 
@@ -64,13 +69,13 @@ def _preds(checks):
     return jnp.stack([jnp.asarray(pred) for pred, _ in checks()])
 
 
-def _raise(messages, with_state, preds, *state):
+def _raise(messages, labels, preds, *state):
     preds = np.asarray(preds)
     if not preds.any():  # another batch member failed
         return np.zeros((), np.bool_)
     message = messages[int(np.argmax(preds))]
-    if with_state:
-        values = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip("tqu", state))
+    if labels:
+        values = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip(labels, state))
         message = f"{message}\n\nIt happened at {values}."
     if not _where:
         _where.append(message)

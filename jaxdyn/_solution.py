@@ -18,6 +18,10 @@ class RESULTS(diffrax.RESULTS):
         "are finite: the kinematic map q̇ = K(q) u, or an intermediate value of a callback, "
         "is not finite there."
     )
+    nonfinite_state_or_parameters = (
+        "The initial state or the parameters of this batch member contain NaN or inf; it was "
+        "not simulated (jaxdyn.simulate_batch)."
+    )
 
 
 class ConstraintRecord(eqx.Module):

@@ -1,0 +1,354 @@
+"""`simulate_batch`: one system simulated from many initial states or parameter sets, sharded
+over the devices present (one or many hosts) and run in chunks of bounded size."""
+
+import inspect
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import tqdm
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._errors import error_if, reports_state
+from ._integrate import simulate
+from ._solution import RESULTS, Solution
+from ._state import numbers_as_arrays, state_dtype
+
+_BATCH = PartitionSpec("batch")
+# Every failure code (equinox enumerations list their members only in `_name_to_item`).
+_FAILURES = [item for item in RESULTS._name_to_item.values() if item != RESULTS.successful]
+# Members per device are padded to a multiple of LANES: XLA computes a vmapped solve on a CPU
+# in SIMD vectors of 4 (AVX2) or 8 (AVX-512) float64 members, and a member left over after the
+# full vectors is computed by other (scalar) code that differs in the last bits, which an
+# adaptive solve can amplify. In full vectors every member's result is that of its single
+# simulation, bit for bit, whatever the layout of the batch.
+LANES = 8
+PILOT_TOLERANCE = {8: 1e-6, 4: 1e-4}  # by bytes per float: the pilot of order="cost"
+_NUMBERS = ("t0", "t1", "ts", "rtol", "atol", "dt0")  # traced: changing them reuses the compile
+_OPTIONS = frozenset(inspect.signature(simulate).parameters) - {"dynamics", "q0", "u0", "p",
+                                                                "throw"}
+
+
+@reports_state
+def simulate_batch(
+    dynamics,
+    q0,
+    u0,
+    p=None,
+    *,
+    batched_params=False,
+    chunk_size: int | None = None,
+    max_bytes: int | None = None,
+    devices=None,
+    order: str = "given",
+    progress: bool = False,
+    throw: bool = True,
+    **options,
+) -> Solution:
+    """Simulate a batch: member i starts at (q0[i], u0[i]) with parameters p[i].
+
+    The members are sharded over `devices` along one mesh axis (`jax.sharding.Mesh`,
+    `jax.shard_map`): each device integrates its share of the members as one vmapped solve,
+    independently of the others (an adaptive solve on one device does not wait, step by step,
+    for the slowest member on another). The batch is padded with copies of its last member to
+    whole chunks of a multiple of 8 members per device, and the padding is stripped from the
+    result: every member then fills a lane of XLA's vector code, and its result is that of
+    `jaxdyn.simulate` on that member alone, bit for bit (a member in a partly filled vector is
+    computed by scalar code that differs in the last bits, which the step-size control can
+    amplify up to the tolerance).
+    Batches larger than memory run in chunks, one compiled solve reused for every chunk, each
+    chunk's results moved to host memory before the next starts.
+
+    **Arguments:**
+
+    - `dynamics`, `p`, and every keyword of `jaxdyn.simulate` (`t1`, `ts`, `solver`, `rtol`,
+      `save`, ...) as for one simulation; they are shared by all members.
+    - `q0`, `u0`: (B, n) and (B, m) for a batch of initial states, or (n,) and (m,) for one
+      initial state shared by every member.
+    - `batched_params`: which leaves of `p` carry a leading batch axis: False (none: the
+      parameters are shared), True (all), or a pytree prefix of `p` of bools, as an equinox
+      filter (e.g. `{"k": True, "g": False}`). All batched leading axes must agree.
+    - `chunk_size`: at most this many members in device memory at once; or `max_bytes`: at
+      most this many bytes of results (the saved trajectories and, with `dense=True`, the
+      interpolants; a member's working state during the solve is a few copies of its state,
+      small beside them) per chunk. Either is rounded down to a multiple of 8 members per
+      device (at least 8 per device; see below). Neither: one chunk.
+    - `devices`: the devices to shard over; default `jax.devices()`, every device of every
+      process (after `jax.distributed.initialize` in a multi-host run; every process then calls
+      `simulate_batch` with the same arguments and receives the whole result). On a CPU, JAX
+      shows one device unless `XLA_FLAGS=--xla_force_host_platform_device_count=N` is set
+      before JAX starts: set N to the number of cores to use them all.
+    - `order`: "given" runs the members in the order given; "cost" first runs a cheap pilot
+      solve (Tsit5 at rtol = atol = 1e-6, 1e-4 in float32, final state only) to count each
+      member's steps and runs members of similar cost together, so that a chunk or device of regular
+      members does not wait for a chaotic one; the result is in the order given. It pays with
+      several chunks or devices and mixed costs (benchmarks/README.md).
+    - `progress`: a tqdm progress bar over the chunks.
+    - `throw`: with True, a failing member raises a `RuntimeError` naming its index, its
+      initial state and parameters, and jaxdyn's message for the failure (the time and state
+      where it happened, from a re-run of that member alone). With False, every member carries
+      its own `result` code and the others are unaffected; a member whose initial state or
+      parameters hold NaN or inf is not simulated (NaN results, with
+      `RESULTS.nonfinite_state_or_parameters`).
+
+    **Returns:** one `jaxdyn.Solution` whose every field has a leading batch axis of size B.
+    Its arrays are JAX arrays with one chunk in one process, NumPy arrays in host memory
+    otherwise. Each member's result is that of `jaxdyn.simulate` on it alone (tested to 1e-12
+    against single simulations and an unsharded vmap, on 1 and 4 devices and in 2 processes).
+
+    Called inside `jax.jit` or a transformation (`jax.grad` through a batch), it stages the same
+    sharded solve; chunks become a `jax.lax.map` over chunks (bounding the solver's working
+    memory, not that of the results, which stay on the device), and `throw=True` reports the
+    first failing member's index and initial state.
+    """
+    unknown = set(options) - _OPTIONS
+    if unknown:
+        raise ValueError(f"simulate_batch got unknown keyword(s) {sorted(unknown)}; it takes "
+                         f"jaxdyn.simulate's: {sorted(_OPTIONS)}.")
+    if "t1" not in options:
+        raise TypeError("simulate_batch() missing the keyword argument 't1' (the end time).")
+    if order not in ("given", "cost"):
+        raise ValueError(f"order must be 'given' or 'cost', got {order!r}.")
+    dtype = state_dtype(q0, u0)
+    q0, u0 = (x if isinstance(x, jax.core.Tracer) else np.asarray(x, dtype) for x in (q0, u0))
+    for name, x in (("q0", q0), ("u0", u0)):
+        if x.ndim not in (1, 2):
+            raise ValueError(f"{name} must have shape (B, n) for a batch of states, or (n,) for "
+                             f"one shared state; got shape {x.shape}.")
+    spec = (q0.ndim == 2, u0.ndim == 2, batched_params)
+    try:
+        batched, shared = eqx.partition((q0, u0, p), spec, is_leaf=lambda x: x is None)
+    except ValueError as error:
+        raise ValueError("batched_params must be True, False or a pytree prefix of p with "
+                         f"bool leaves: {error}") from None
+    size = _batch_size(batched)
+    numbers = {k: options.pop(k) for k in _NUMBERS if k in options}
+    shared = numbers_as_arrays((shared, numbers), dtype)
+    mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
+    width = mesh.devices.size
+    chunk = _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, options)
+    setup = (dynamics, mesh, tuple(sorted(options.items())))
+
+    traced = any(isinstance(x, jax.core.Tracer)
+                 for x in jax.tree_util.tree_leaves((dynamics, batched, shared)))
+    if traced:
+        return _staged(setup, batched, shared, size, chunk, throw)
+
+    permutation = None
+    if order == "cost":  # a pilot solve counts each member's steps
+        pilot = simulate_batch(dynamics, q0, u0, p, batched_params=batched_params,
+                               chunk_size=chunk, devices=devices, throw=False, save="q",
+                               t0=numbers.get("t0", 0.0), t1=numbers["t1"],
+                               solver=diffrax.Tsit5(), rtol=PILOT_TOLERANCE[dtype.itemsize],
+                               atol=PILOT_TOLERANCE[dtype.itemsize],
+                               max_steps=options.get("max_steps", 16**4))
+        permutation = np.argsort(np.asarray(pilot.num_steps), kind="stable")
+        batched = jax.tree_util.tree_map(lambda x: np.asarray(x)[permutation], batched)
+    count = math.ceil(size / chunk)
+    padded = _pad(batched, count * chunk)
+    in_host = count > 1 or jax.process_count() > 1
+    pieces = []
+    for k in tqdm.trange(count, disable=not progress, unit="chunk", desc="simulate_batch"):
+        members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
+        solution = _solve_chunk(setup, _place(members, mesh, _BATCH),
+                                _place(shared, mesh, PartitionSpec()))
+        if in_host:
+            solution = _to_host(solution)
+        if throw:
+            _raise_for_failed(solution, k * chunk, size, batched, shared, dynamics, options)
+        pieces.append(solution)
+    solution = pieces[0] if count == 1 else jax.tree_util.tree_map(
+        lambda *xs: np.concatenate(xs), *pieces)
+    solution = jax.tree_util.tree_map(lambda x: x[:size], solution)
+    if permutation is not None:
+        inverse = np.argsort(permutation)
+        solution = jax.tree_util.tree_map(lambda x: x[inverse], solution)
+    return solution
+
+
+def _batch_size(batched):
+    """B, the common leading axis of the batched inputs (an error naming them if they differ)."""
+    sizes = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(batched)[0]:
+        name = ("q0", "u0", "p")[path[0].idx] + jax.tree_util.keystr(path[1:])
+        shape = np.shape(leaf)
+        if not shape:
+            raise ValueError(f"{name} is batched but is a scalar: a batched leaf needs a "
+                             "leading batch axis.")
+        sizes[name] = shape[0]
+    if not sizes:
+        raise ValueError("Nothing is batched: pass q0 of shape (B, n) and/or u0 of shape "
+                         "(B, m), or parameters with a leading batch axis and "
+                         "batched_params=True (or a prefix of p saying which leaves).")
+    if len(set(sizes.values())) > 1:
+        listed = ", ".join(f"{name} has {b}" for name, b in sizes.items())
+        raise ValueError(f"The batch's leading axes disagree: {listed} members.")
+    size = next(iter(sizes.values()))
+    if size == 0:
+        raise ValueError("The batch is empty (leading axis of size 0).")
+    return size
+
+
+def _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, options):
+    """Members per chunk: a multiple of `LANES` members per device, within the bound."""
+    if chunk_size is not None and max_bytes is not None:
+        raise ValueError("Pass chunk_size or max_bytes, not both.")
+    unit = width * LANES
+    if max_bytes is not None:
+        member = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(np.shape(x)[1:],
+                                                                       jnp.result_type(x)),
+                                        batched)
+        results = eqx.filter_eval_shape(_member, dynamics, member, shared,
+                                        tuple(sorted(options.items())))
+        per_member = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(
+            (results, member)))
+        if max_bytes < per_member * unit:
+            raise ValueError(f"max_bytes = {max_bytes} holds less than {LANES} members per "
+                             f"device: a member's results take {per_member} bytes, and there "
+                             f"are {width} devices.")
+        chunk_size = max_bytes // per_member
+    if chunk_size is not None and chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size}.")
+    if chunk_size is None or chunk_size >= size:
+        return math.ceil(size / unit) * unit
+    return max(unit, chunk_size // unit * unit)
+
+
+def _member(dynamics, member, shared, options):
+    """One member's simulation (throw=False: failures are its own result code)."""
+    (q0, u0, p), numbers = eqx.combine(member, shared[0]), shared[1]
+    return simulate(dynamics, q0, u0, p, throw=False, **numbers, **dict(options))
+
+
+def _members(dynamics, members, shared, options):
+    """A vmapped solve of the members; those with a non-finite input are not simulated: they
+    take a finite member's input (the cost of the solve stays that of real members) and get
+    NaN results and `RESULTS.nonfinite_state_or_parameters`."""
+    leaves = jax.tree_util.tree_leaves(members)
+    finite = jnp.stack([jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
+                        for x in leaves if jnp.issubdtype(x.dtype, jnp.inexact)]).all(axis=0)
+    stand_in = jnp.argmax(finite)
+
+    def replace(x):
+        if not jnp.issubdtype(x.dtype, jnp.inexact):
+            return x
+        mask = finite.reshape((-1,) + (1,) * (x.ndim - 1))
+        return jnp.where(mask, x, jnp.where(finite.any(), x[stand_in], jnp.nan_to_num(
+            x, nan=0.0, posinf=0.0, neginf=0.0)))
+
+    members = jax.tree_util.tree_map(replace, members)
+    solution = jax.vmap(_member, in_axes=(None, 0, None, None))(dynamics, members, shared,
+                                                                 options)
+
+    def mark(x):
+        if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact):
+            return jnp.where(finite.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
+        return x
+
+    ts, solution = solution.ts, jax.tree_util.tree_map(mark, solution)
+    result = jax.vmap(lambda ok, r: RESULTS.where(ok, r, RESULTS.nonfinite_state_or_parameters))(
+        finite, solution.result)
+    return eqx.tree_at(lambda s: (s.ts, s.result), solution, (ts, result))
+
+
+def _sharded(setup, members, shared):
+    """The members' solve with the batch axis split over the mesh: each device runs its own
+    vmapped solve of its share (shard_map), with no communication between devices."""
+    dynamics, mesh, options = setup
+    arrays, static = eqx.partition(dynamics, eqx.is_array)
+
+    def local(members, shared, arrays):
+        return _members(eqx.combine(arrays, static), members, shared, options)
+
+    return jax.shard_map(local, mesh=mesh, in_specs=(_BATCH, PartitionSpec(), PartitionSpec()),
+                         out_specs=_BATCH, check_vma=False)(members, shared, arrays)
+
+
+_solve_chunk = eqx.filter_jit(_sharded)
+
+
+def _staged(setup, batched, shared, size, chunk, throw):
+    """Under a trace: the padded batch as a `lax.map` over chunks of one vmapped solve whose
+    batch axis is laid out over the mesh by a sharding constraint (XLA partitions the solve;
+    unlike `shard_map`, this composes with every transformation of diffrax's loops)."""
+    dynamics, mesh, options = setup
+    count = math.ceil(size / chunk)
+    padded = _pad(batched, count * chunk)
+    chunks = jax.tree_util.tree_map(lambda x: x.reshape((count, chunk) + x.shape[1:]), padded)
+
+    def solve(members):
+        members = jax.lax.with_sharding_constraint(members, NamedSharding(mesh, _BATCH))
+        return _members(dynamics, members, shared, options)
+
+    solution = jax.lax.map(solve, chunks)
+    solution = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:])[:size], solution)
+    if throw:
+        failed = solution.result != RESULTS.successful
+        index = jnp.argmax(failed)
+        code = jax.tree_util.tree_map(lambda v: v[index], solution.result)
+        q0, u0, _ = eqx.combine(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[index],
+                                                       batched), shared[0])
+        checks = [(code == item, f"A member of the batch failed: {RESULTS[item]}")
+                  for item in _FAILURES]
+        # Tied to every output, so that the check stays whatever the caller keeps.
+        arrays, static = eqx.partition(solution, eqx.is_array)
+        arrays = error_if(arrays, checks, {"member": index, "q0": q0, "u0": u0})
+        solution = eqx.combine(arrays, static)
+    return solution
+
+
+def _pad(batched, total):
+    """The batch padded to `total` members with copies of its last member."""
+    def pad(x):
+        extra = total - x.shape[0]
+        if extra == 0:
+            return x
+        tail = jnp if isinstance(x, jax.core.Tracer) else np
+        return tail.concatenate([x, tail.repeat(x[-1:], extra, axis=0)])
+
+    return jax.tree_util.tree_map(pad, batched)
+
+
+def _place(tree, mesh, spec):
+    """Host values as global arrays laid out on the mesh (each process supplies the parts
+    its devices hold, from the same full value)."""
+    sharding = NamedSharding(mesh, spec)
+
+    def place(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree_util.tree_map(place, tree)
+
+
+def _to_host(solution):
+    """The solution's arrays as NumPy arrays holding the whole batch, in every process."""
+    if jax.process_count() > 1:
+        return multihost_utils.process_allgather(solution, tiled=True)
+    return jax.device_get(solution)
+
+
+def _raise_for_failed(solution, offset, size, batched, shared, dynamics, options):
+    failed = np.flatnonzero(np.asarray(solution.result != RESULTS.successful)[:size - offset])
+    if failed.size == 0:
+        return
+    index = offset + int(failed[0])
+    member = jax.tree_util.tree_map(lambda x: np.asarray(x)[index], batched)
+    (q0, u0, p), numbers = eqx.combine(member, shared[0]), shared[1]
+    try:  # the member alone, for jaxdyn's message naming where it failed
+        simulate(dynamics, q0, u0, p, throw=True, **numbers, **dict(options))
+        message = RESULTS[jax.tree_util.tree_map(lambda v: v[failed[0]], solution.result)]
+    except (RuntimeError, ValueError) as error:
+        message = str(error)
+    inputs = f"q0 = {np.asarray(q0).tolist()}, u0 = {np.asarray(u0).tolist()}"
+    for path, leaf in jax.tree_util.tree_flatten_with_path(member[2])[0]:
+        inputs += f", p{jax.tree_util.keystr(path)} = {np.asarray(leaf).tolist()}"
+    others = f" ({failed.size} members of its chunk failed)" if failed.size > 1 else ""
+    raise RuntimeError(f"Member {index} of the batch of {size} failed{others}. Its initial "
+                       f"state: {inputs}.\n\n{message}")
+
+

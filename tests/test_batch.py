@@ -1,0 +1,280 @@
+"""Batches: `jax.vmap` over `simulate`, and `jaxdyn.simulate_batch` (sharding, padding,
+chunks, failing members, gradients).
+
+References: the closed form of the harmonic oscillator, x(t) = x₀ cos ωt + (v₀/ω) sin ωt with
+ω = √(k/m); single simulations one member at a time; central differences; and, on 4 simulated
+CPU devices and in two processes joined by `jax.distributed`, the same batch computed
+unsharded in one process.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdyn
+from helpers import central_difference
+
+OSCILLATOR = jaxdyn.Lagrangian(kinetic=lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
+                               potential=lambda q, p: 0.5 * p["k"] * q @ q)
+TS = np.linspace(0.0, 2.0, 9)
+# At 1e-9 the step-size controller's decisions do not hinge on round-off, so that batches laid
+# out differently (sharded, chunked, padded: other vector widths in XLA's code) take the same
+# steps and agree to round-off. The closed form is met to 5e-8 (measured: Dopri8's interpolant
+# at the save times); a wrong batch layout would be wrong by O(1).
+OPTIONS = dict(t1=2.0, ts=TS, rtol=1e-9, atol=1e-9)
+CLOSED_FORM_ATOL = 2e-7
+
+
+def closed_form(x0, v0, k, m=1.0):
+    omega = np.sqrt(np.asarray(k) / m)[..., None]
+    t = TS[None, :]
+    return (np.asarray(x0)[..., None] * np.cos(omega * t)
+            + np.asarray(v0)[..., None] / omega * np.sin(omega * t))
+
+
+@pytest.fixture(scope="module")
+def members():
+    rng = np.random.default_rng(0)
+    size = 21  # uneven: padded to whole chunks of 8 members per device, then stripped
+    return dict(x0=rng.uniform(-1, 1, size), v0=rng.uniform(-1, 1, size),
+                k=rng.uniform(1.0, 9.0, size))
+
+
+def test_vmap_over_states_parameters_and_both(members):
+    x0, v0, k = members["x0"], members["v0"], members["k"]
+
+    def one(x, v, k):
+        return jaxdyn.simulate(OSCILLATOR, x[None], v[None], {"m": 1.0, "k": k}, **OPTIONS).q[:, 0]
+
+    both = jax.jit(jax.vmap(one))(x0, v0, k)
+    states = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))(x0, v0, 4.0)
+    params = jax.jit(jax.vmap(one, in_axes=(None, None, 0)))(0.5, -0.2, k)
+    np.testing.assert_allclose(both, closed_form(x0, v0, k), atol=CLOSED_FORM_ATOL)
+    np.testing.assert_allclose(states, closed_form(x0, v0, 4.0), atol=CLOSED_FORM_ATOL)
+    np.testing.assert_allclose(params, closed_form(0.5, -0.2, k), atol=CLOSED_FORM_ATOL)
+
+
+def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
+    x0, v0, k = members["x0"][:, None], members["v0"][:, None], members["k"]
+    p = {"m": 1.0, "k": k}
+    solution = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params={"m": False,
+                                                                            "k": True},
+                                     **OPTIONS)
+    assert solution.q.shape == (21, len(TS), 1) and solution.ts.shape == (21, len(TS))
+    assert bool(jnp.all(solution.result == jaxdyn.RESULTS.successful))
+    np.testing.assert_allclose(solution.q[..., 0], closed_form(x0[:, 0], v0[:, 0], k),
+                               atol=CLOSED_FORM_ATOL)
+    single = jax.jit(lambda x, v, k: jaxdyn.simulate(OSCILLATOR, x, v, {"m": 1.0, "k": k},
+                                                     **OPTIONS))
+    for i in range(21):
+        alone = single(x0[i], v0[i], k[i])
+        for field in ("q", "u", "qd", "num_steps"):
+            np.testing.assert_allclose(getattr(solution, field)[i], getattr(alone, field),
+                                       rtol=0, atol=1e-12, err_msg=f"{field}, member {i}")
+
+
+def test_chunks_order_and_shared_parameters_agree(members, capsys):
+    x0, v0 = members["x0"][:, None], members["v0"][:, None]
+    whole = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0}, **OPTIONS)
+    # shared parameters against the same values given per member
+    per_member = {"m": np.ones(21), "k": np.full(21, 4.0)}
+    batched = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, per_member, batched_params=True,
+                                    **OPTIONS)
+    np.testing.assert_allclose(batched.q, whole.q, rtol=0, atol=1e-12)
+    # three chunks of 8 (the last padded), in host memory; the progress bar counts them
+    chunked = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0}, chunk_size=8,
+                                    progress=True, **OPTIONS)
+    assert "3/3" in capsys.readouterr().err
+    assert isinstance(chunked.q, np.ndarray) and chunked.q.shape == whole.q.shape
+    np.testing.assert_allclose(chunked.q, whole.q, rtol=0, atol=1e-12)
+    # a byte bound: one member's results are 9 save times × (q, u, qd, ts) + the statistics;
+    # room for 17 members is rounded down to 16 (whole vectors of 8): two chunks
+    per_member = chunked.q[0].nbytes * 3 + chunked.ts[0].nbytes + 4 * 8 + 2 * 8
+    by_bytes = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0},
+                                     max_bytes=17 * per_member, progress=True, **OPTIONS)
+    assert "2/2" in capsys.readouterr().err
+    np.testing.assert_allclose(by_bytes.q, whole.q, rtol=0, atol=1e-12)
+    # members run in order of their cost, returned in the order given
+    ordered = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0}, chunk_size=8,
+                                    order="cost", **OPTIONS)
+    np.testing.assert_allclose(ordered.q, whole.q, rtol=0, atol=1e-12)
+    # one shared initial state, batched parameters
+    sweep = jaxdyn.simulate_batch(OSCILLATOR, [0.5], [-0.2], {"m": 1.0, "k": members["k"]},
+                                  batched_params={"m": False, "k": True}, **OPTIONS)
+    np.testing.assert_allclose(sweep.q[..., 0], closed_form(0.5, -0.2, members["k"]),
+                               atol=CLOSED_FORM_ATOL)
+
+
+def test_gradient_through_a_batch_matches_finite_differences(members):
+    x0, v0 = members["x0"][:, None], members["v0"][:, None]
+
+    def loss(k):
+        solution = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": k}, **OPTIONS)
+        return jnp.sum(solution.q[:, -1, 0] ** 2)
+
+    gradient = jax.grad(loss)(4.0)
+    np.testing.assert_allclose(gradient, central_difference(loss, 4.0, 1e-5), rtol=1e-6)
+    # and the closed form's own derivative: d/dk Σ x(T)²
+    exact = central_difference(lambda k: np.sum(closed_form(x0[:, 0], v0[:, 0], k)[:, -1] ** 2),
+                               4.0, 1e-6)
+    np.testing.assert_allclose(gradient, exact, rtol=1e-6)
+
+
+def test_one_failing_member_does_not_sink_the_batch(members):
+    x0, v0 = members["x0"][:, None], members["v0"][:, None]
+    k = members["k"].copy()
+    m = np.ones(21)
+    k[4] = np.nan  # a non-finite parameter
+    m[9] = 0.0  # a singular mass matrix
+    p = {"m": m, "k": k}
+    solution = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, throw=False,
+                                     **OPTIONS)
+    assert (solution.result == jaxdyn.RESULTS.nonfinite_state_or_parameters)[4]
+    assert (solution.result == jaxdyn.RESULTS.singular_mass_matrix)[9]
+    assert bool(np.all(np.isnan(solution.q[4])))
+    good = np.setdiff1d(np.arange(21), [4, 9])
+    assert bool(jnp.all((solution.result == jaxdyn.RESULTS.successful)[good]))
+    np.testing.assert_allclose(solution.q[good, :, 0], closed_form(x0[good, 0], v0[good, 0],
+                                                                    k[good]), atol=CLOSED_FORM_ATOL)
+    with pytest.raises(RuntimeError, match=r"(?s)Member 4 of the batch of 21 failed.*"
+                       r"p\['k'\] = nan.*p\['k'\] contains NaN or inf"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, **OPTIONS)
+    p["k"][4] = 4.0
+    with pytest.raises(RuntimeError, match=r"(?s)Member 9 of the batch of 21 failed.*"
+                       r"p\['m'\] = 0.0.*mass matrix is singular.*It happened at t = "):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, **OPTIONS)
+    # inside a jit: the first failing member's index and initial state
+    staged = jax.jit(lambda p: jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p,
+                                                     batched_params=True, **OPTIONS).q)
+    with pytest.raises(Exception, match=r"(?s)mass matrix is singular.*member = 9, q0 = "):
+        jax.block_until_ready(staged(p))
+
+
+def test_errors_name_the_problem(members):
+    x0, v0 = members["x0"][:, None], members["v0"][:, None]
+    p = {"m": 1.0, "k": 4.0}
+    with pytest.raises(ValueError, match=r"leading axes disagree: q0 has 21, u0 has 12"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0[:12], p, **OPTIONS)
+    with pytest.raises(ValueError, match=r"q0 has 21, u0 has 21, p\['k'\] has 5"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": np.ones(5)},
+                              batched_params={"m": False, "k": True}, **OPTIONS)
+    with pytest.raises(ValueError, match="Nothing is batched"):
+        jaxdyn.simulate_batch(OSCILLATOR, [0.1], [0.0], p, **OPTIONS)
+    with pytest.raises(ValueError, match=r"p\['k'\] is batched but is a scalar"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, **OPTIONS)
+    with pytest.raises(ValueError, match=r"q0 must have shape \(B, n\)"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0[None], v0, p, **OPTIONS)
+    with pytest.raises(ValueError, match="unknown keyword.*'rtl'"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, t1=1.0, rtl=1e-6)
+    with pytest.raises(ValueError, match="holds less than 8 members per device"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, max_bytes=10, **OPTIONS)
+    with pytest.raises(ValueError, match="order must be"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, order="fastest", **OPTIONS)
+
+
+# -- several devices, several processes ------------------------------------------------------
+
+_SETUP = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+{extra}
+import numpy as np, jaxdyn
+oscillator = jaxdyn.Lagrangian(kinetic=lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
+                               potential=lambda q, p: 0.5 * p["k"] * q @ q)
+rng = np.random.default_rng(0)
+x0, v0, k = rng.uniform(-1, 1, (21, 1)), rng.uniform(-1, 1, (21, 1)), rng.uniform(1, 9, 21)
+# The reference: one vmap on one device over the members padded to 24 (whole SIMD vectors).
+pad = np.arange(24) % 21
+p, spec = {{"m": 1.0, "k": k}}, {{"m": False, "k": True}}
+options = dict(t1=2.0, ts=np.linspace(0.0, 2.0, 9), rtol=1e-9, atol=1e-9)
+def run(**kwargs):
+    return np.asarray(jaxdyn.simulate_batch(oscillator, x0, v0, p, batched_params=spec,
+                                            **options, **kwargs).q)
+unsharded = np.asarray(jax.jit(jax.vmap(lambda x, v, k: jaxdyn.simulate(
+    oscillator, x, v, {{"m": 1.0, "k": k}}, **options).q))(x0[pad], v0[pad], k[pad]))[:21]
+"""
+
+
+def _python(script, env=None, timeout=300):
+    return subprocess.Popen([sys.executable, "-c", script], env={**os.environ, **(env or {})},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _result(process, timeout=300):
+    out, err = process.communicate(timeout=timeout)
+    assert process.returncode == 0, err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_sharded_over_four_cpu_devices_equals_unsharded():
+    """On 4 simulated CPU devices (in a subprocess, so the rest of the suite keeps one): 21
+    members padded to 32 (8 per device), ordered by cost, and on two of the four devices in
+    two chunks of 16, each equal to the unsharded vmap."""
+    script = _SETUP.format(extra="") + textwrap.dedent("""
+        assert len(jax.devices()) == 4
+        out = {"devices": len(jax.devices())}
+        for name, kwargs in {"whole": {}, "by cost": {"order": "cost"}}.items():
+            out[name] = float(np.max(np.abs(run(**kwargs) - unsharded)))
+        two = jaxdyn.simulate_batch(oscillator, x0, v0, p, batched_params=spec,
+                                    devices=jax.devices()[:2], chunk_size=16, **options)
+        out["two of four"] = float(np.max(np.abs(np.asarray(two.q) - unsharded)))
+        print(json.dumps(out))
+    """)
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    result = _result(_python(script, {"XLA_FLAGS": flags}))
+    assert result.pop("devices") == 4
+    for name, difference in result.items():
+        assert difference <= 1e-12, (name, difference)
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_with_jax_distributed_equal_one():
+    """Two processes on this machine joined by `jax.distributed.initialize` (CPU, loopback,
+    Gloo collectives), one device each: the batch is sharded over both, and each process
+    receives the whole result, equal to the single-process unsharded vmap."""
+    port = _free_port()
+    processes = []
+    for rank in range(2):
+        extra = textwrap.dedent(f"""
+            jax.config.update("jax_cpu_collectives_implementation", "gloo")
+            jax.distributed.initialize(coordinator_address="localhost:{port}",
+                                       num_processes=2, process_id={rank})
+        """)
+        script = _SETUP.format(extra=extra) + textwrap.dedent("""
+            assert jax.process_count() == 2 and len(jax.devices()) == 2
+            q = run()
+            print(json.dumps({"difference": float(np.max(np.abs(q - unsharded))),
+                              "shape": list(q.shape)}))
+        """)
+        processes.append(_python(script))
+    for process in processes:
+        result = _result(process)
+        assert result["shape"] == [21, 9, 1]
+        assert result["difference"] <= 1e-12
+
+
+def test_float32_batch():
+    """float32 as an explicit option: states in float32 give float32 results near the closed
+    form (to what float32 and its default tolerance hold)."""
+    x0 = np.linspace(-1, 1, 5, dtype=np.float32)[:, None]
+    solution = jaxdyn.simulate_batch(OSCILLATOR, x0, np.zeros_like(x0),
+                                     {"m": np.float32(1.0), "k": np.float32(4.0)}, t1=2.0,
+                                     ts=TS.astype(np.float32), solver=diffrax.Tsit5())
+    assert solution.q.dtype == jnp.float32
+    np.testing.assert_allclose(solution.q[..., 0], closed_form(x0[:, 0], 0 * x0[:, 0], 4.0),
+                               atol=1e-4)
