@@ -24,8 +24,8 @@ _FAILURES = [item for item in RESULTS._name_to_item.values() if item != RESULTS.
 # Members per device are padded to a multiple of LANES: XLA computes a vmapped solve on a CPU
 # in SIMD vectors of 4 (AVX2) or 8 (AVX-512) float64 members, and a member left over after the
 # full vectors is computed by other (scalar) code that differs in the last bits, which an
-# adaptive solve can amplify. In full vectors every member's result is that of its single
-# simulation, bit for bit, whatever the layout of the batch.
+# adaptive solve can amplify. In full vectors every member's result is the same, bit for bit,
+# whatever the layout of the batch.
 LANES = 8
 PILOT_TOLERANCE = {8: 1e-6, 4: 1e-4}  # by bytes per float: the pilot of order="cost"
 _NUMBERS = ("t0", "t1", "ts", "rtol", "atol", "dt0")  # traced: changing them reuses the compile
@@ -55,11 +55,12 @@ def simulate_batch(
     `jax.shard_map`): each device integrates its share of the members as one vmapped solve,
     independently of the others (an adaptive solve on one device does not wait, step by step,
     for the slowest member on another). The batch is padded with copies of its last member to
-    whole chunks of a multiple of 8 members per device, and the padding is stripped from the
-    result: every member then fills a lane of XLA's vector code, and its result is that of
-    `jaxdyn.simulate` on that member alone, bit for bit (a member in a partly filled vector is
-    computed by scalar code that differs in the last bits, which the step-size control can
-    amplify up to the tolerance).
+    whole chunks of a multiple of 8 members per device (once it has 8 per device), and the
+    padding is stripped from the result: every member then fills a lane of XLA's vector code,
+    so that its result does not depend on the layout of the batch (devices, chunks, position),
+    bit for bit. (A member in a partly filled vector is computed by scalar code that differs in
+    the last bits; on a chaotic trajectory such differences grow to the size of the motion, as
+    they do between a batch and single `jaxdyn.simulate` calls.)
     Batches larger than memory run in chunks, one compiled solve reused for every chunk, each
     chunk's results moved to host memory before the next starts.
 
@@ -76,7 +77,7 @@ def simulate_batch(
       most this many bytes of results (the saved trajectories and, with `dense=True`, the
       interpolants; a member's working state during the solve is a few copies of its state,
       small beside them) per chunk. Either is rounded down to a multiple of 8 members per
-      device (at least 8 per device; see below). Neither: one chunk.
+      device (at least 8 per device, for batches that large; see above). Neither: one chunk.
     - `devices`: the devices to shard over; default `jax.devices()`, every device of every
       process (after `jax.distributed.initialize` in a multi-host run; every process then calls
       `simulate_batch` with the same arguments and receives the whole result). On a CPU, JAX
@@ -97,8 +98,9 @@ def simulate_batch(
 
     **Returns:** one `jaxdyn.Solution` whose every field has a leading batch axis of size B.
     Its arrays are JAX arrays with one chunk in one process, NumPy arrays in host memory
-    otherwise. Each member's result is that of `jaxdyn.simulate` on it alone (tested to 1e-12
-    against single simulations and an unsharded vmap, on 1 and 4 devices and in 2 processes).
+    otherwise. The results are those of an unsharded `jax.vmap(jaxdyn.simulate)` over the same
+    members (tested to 1e-12 on 1 and 4 devices and in 2 processes, and against single
+    simulations and closed forms).
 
     Called inside `jax.jit` or a transformation (`jax.grad` through a batch), it stages the same
     sharded solve; chunks become a `jax.lax.map` over chunks (bounding the solver's working
@@ -151,18 +153,25 @@ def simulate_batch(
     count = math.ceil(size / chunk)
     padded = _pad(batched, count * chunk)
     in_host = count > 1 or jax.process_count() > 1
-    pieces = []
+    solution = None
     for k in tqdm.trange(count, disable=not progress, unit="chunk", desc="simulate_batch"):
         members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
-        solution = _solve_chunk(setup, _place(members, mesh, _BATCH),
-                                _place(shared, mesh, PartitionSpec()))
+        piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
+                             _place(shared, mesh, PartitionSpec()))
         if in_host:
-            solution = _to_host(solution)
+            piece = _to_host(piece)
         if throw:
-            _raise_for_failed(solution, k * chunk, size, batched, shared, dynamics, options)
-        pieces.append(solution)
-    solution = pieces[0] if count == 1 else jax.tree_util.tree_map(
-        lambda *xs: np.concatenate(xs), *pieces)
+            _raise_for_failed(piece, k * chunk, size, batched, shared, dynamics, options)
+        if count == 1:
+            solution = piece
+            break
+        if solution is None:  # the whole result in host memory, filled chunk by chunk
+            solution = jax.tree_util.tree_map(
+                lambda x: np.empty((size,) + x.shape[1:], x.dtype), piece)
+        stop = min(size, (k + 1) * chunk)
+        for out, x in zip(jax.tree_util.tree_leaves(solution), jax.tree_util.tree_leaves(piece)):
+            out[k * chunk:stop] = x[:stop - k * chunk]
+        del piece
     solution = jax.tree_util.tree_map(lambda x: x[:size], solution)
     if permutation is not None:
         inverse = np.argsort(permutation)
@@ -197,7 +206,9 @@ def _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, o
     """Members per chunk: a multiple of `LANES` members per device, within the bound."""
     if chunk_size is not None and max_bytes is not None:
         raise ValueError("Pass chunk_size or max_bytes, not both.")
-    unit = width * LANES
+    # whole vectors once every device has that many members; a smaller batch is not padded
+    # to them (that would multiply its work by up to LANES)
+    unit = width * LANES if size >= width * LANES else width
     if max_bytes is not None:
         member = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(np.shape(x)[1:],
                                                                        jnp.result_type(x)),
@@ -207,9 +218,9 @@ def _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, o
         per_member = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(
             (results, member)))
         if max_bytes < per_member * unit:
-            raise ValueError(f"max_bytes = {max_bytes} holds less than {LANES} members per "
-                             f"device: a member's results take {per_member} bytes, and there "
-                             f"are {width} devices.")
+            raise ValueError(f"max_bytes = {max_bytes} holds less than {unit // width} "
+                             f"member(s) per device: a member's results take {per_member} "
+                             f"bytes, and there are {width} devices.")
         chunk_size = max_bytes // per_member
     if chunk_size is not None and chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size}.")
