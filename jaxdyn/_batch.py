@@ -161,7 +161,8 @@ def simulate_batch(
         if in_host:
             piece = _to_host(piece)
         if throw:
-            _raise_for_failed(piece, k * chunk, size, batched, shared, dynamics, options)
+            _raise_for_failed(piece, k * chunk, size, batched, shared, dynamics, options,
+                              permutation)
         if count == 1:
             solution = piece
             break
@@ -343,12 +344,14 @@ def _to_host(solution):
     return jax.device_get(solution)
 
 
-def _raise_for_failed(solution, offset, size, batched, shared, dynamics, options):
+def _raise_for_failed(solution, offset, size, batched, shared, dynamics, options,
+                      permutation=None):
     failed = np.flatnonzero(np.asarray(solution.result != RESULTS.successful)[:size - offset])
     if failed.size == 0:
         return
-    index = offset + int(failed[0])
-    member = jax.tree_util.tree_map(lambda x: np.asarray(x)[index], batched)
+    position = offset + int(failed[0])  # in the order run
+    member = jax.tree_util.tree_map(lambda x: np.asarray(x)[position], batched)
+    index = position if permutation is None else int(permutation[position])  # as given
     (q0, u0, p), numbers = eqx.combine(member, shared[0]), shared[1]
     try:  # the member alone, for jaxdyn's message naming where it failed
         simulate(dynamics, q0, u0, p, throw=True, **numbers, **dict(options))

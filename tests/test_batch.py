@@ -148,6 +148,10 @@ def test_one_failing_member_does_not_sink_the_batch(members):
     with pytest.raises(RuntimeError, match=r"(?s)Member 4 of the batch of 21 failed.*"
                        r"p\['k'\] = nan.*p\['k'\] contains NaN or inf"):
         jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, **OPTIONS)
+    # members run in order of cost: the error still gives the index as given
+    with pytest.raises(RuntimeError, match=r"Member 4 of the batch of 21 failed"):
+        jaxdyn.simulate_batch(OSCILLATOR, x0, v0, p, batched_params=True, order="cost",
+                              **OPTIONS)
     p["k"][4] = 4.0
     with pytest.raises(RuntimeError, match=r"(?s)Member 9 of the batch of 21 failed.*"
                        r"p\['m'\] = 0.0.*mass matrix is singular.*It happened at t = "):
