@@ -200,19 +200,22 @@ def where_the_time_goes(rounds):
             return jax.lax.fori_loop(0, iterations, body, (q, qd))
         return jax.jit(run)
 
-    def in_solve(rhs):
+    def in_solve(rhs, scan_kind=None):
         def field(t, y, args):
             return y[1], rhs(t, y[0], y[1], p)
 
         def one(q0, u0):
             return diffrax.diffeqsolve(
-                diffrax.ODETerm(field), diffrax.Tsit5(), 0.0, T1, None, (q0, u0),
+                diffrax.ODETerm(field), diffrax.Tsit5(scan_kind=scan_kind), 0.0, T1, None,
+                (q0, u0),
                 stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
                 saveat=diffrax.SaveAt(t1=True), max_steps=16**4).ys[0]
         return jax.jit(jax.vmap(one))
 
     loops = {"hand": in_loop(DOUBLE_PENDULUM.hand_written), "jaxdyn": in_loop(jaxdyn_rhs)}
     solves = {"hand": in_solve(DOUBLE_PENDULUM.hand_written), "jaxdyn": in_solve(jaxdyn_rhs),
+              "hand, bounded": in_solve(DOUBLE_PENDULUM.hand_written, "bounded"),
+              "jaxdyn, bounded": in_solve(jaxdyn_rhs, "bounded"),
               "simulate": lambda q0, u0: batch(q0, u0)[0]}
     for f in (*loops.values(), *solves.values()):
         jax.block_until_ready(f(q0, u0 + 0.1))
@@ -224,7 +227,9 @@ def where_the_time_goes(rounds):
     print(f"  equations alone in a compiled loop: hand {loop['hand'] / 2048e3 * 1e9:.1f} ns per "
           f"member and evaluation, jaxdyn {loop['jaxdyn'] / loop['hand']:.2f}× hand")
     print(f"  inside diffrax's vmapped Tsit5 solve: hand {solve['hand'] * 1e3:.0f} ms, jaxdyn's "
-          f"equations {solve['jaxdyn'] / solve['hand']:.2f}×, simulate_batch "
+          f"equations {solve['jaxdyn'] / solve['hand']:.2f}×; stages in a bounded loop: hand "
+          f"{solve['hand, bounded'] / solve['hand']:.2f}×, jaxdyn's equations "
+          f"{solve['jaxdyn, bounded'] / solve['hand']:.2f}×; simulate_batch (bounded) "
           f"{solve['simulate'] / solve['hand']:.2f}×")
 
 
