@@ -97,7 +97,8 @@ def simulate_batch(
       initial state and parameters, and jaxdyn's message for the failure (the time and state
       where it happened, from a re-run of that member alone). With False, every member carries
       its own `result` code and the others are unaffected; a member whose initial state or
-      parameters hold NaN or inf is not simulated (NaN results, with
+      parameters hold NaN or inf is not simulated (a finite member's input stands in, so
+      that it costs what a real member costs; NaN results and
       `RESULTS.nonfinite_state_or_parameters`).
 
     **Returns:** one `jaxdyn.Solution` whose every field has a leading batch axis of size B.

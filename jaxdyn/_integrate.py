@@ -83,7 +83,9 @@ def simulate(
       or `jax.jvp` is cheaper on systems beyond a few coordinates; for one long solve,
       `RecursiveCheckpointAdjoint(checkpoints=...)` with a checkpoint per step avoids
       recomputation. Measured costs: benchmarks/README.md.
-    - `throw`: raise on failure; if False, inspect `Solution.result`.
+    - `throw`: raise on failure; if False, inspect `Solution.result` (NaN or inf in the
+      initial state or parameters then gives `RESULTS.nonfinite_state_or_parameters` and NaN
+      states, so that one bad member does not stop a vmapped batch).
 
     **Returns:** a `jaxdyn.Solution`.
 
@@ -134,7 +136,11 @@ def _simulate(dynamics, q0, u0, numbers, options):
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
-    q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
+    if throw:
+        q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
+        nonfinite_input = None
+    else:  # its own result code, so that a vmapped batch is not stopped by one member
+        q0, u0, p, nonfinite_input = _finite_stand_in(q0, u0, p)
     # A mass matrix of the parameters alone is factored once, here, not at every step (in
     # straight-line code it folds to a few operations per step anyway).
     factorisation = None
@@ -189,6 +195,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
     result, failure = _diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
                                 stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
     result = RESULTS.where(stalled, result, RESULTS.promote(solution.result))
+    if nonfinite_input is not None:
+        result = RESULTS.where(nonfinite_input, RESULTS.nonfinite_state_or_parameters, result)
+        q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
     ts_out = solution.ts[0]
     if throw:
         ts_out = error_if(ts_out, [(result == code, RESULTS[code]) for code in (
@@ -218,6 +227,18 @@ def _simulate(dynamics, q0, u0, numbers, options):
         dense=solution if dense else None,
         constraints=constraints,
     )
+
+
+def _finite_stand_in(q0, u0, p):
+    """(q0, u0, p) with NaN and inf replaced by zeros, and whether there were any: the solve
+    then runs on finite numbers (and stops soon if they make no sense, e.g. a zero mass) and
+    its result is discarded."""
+    leaves = [x for x in jax.tree_util.tree_leaves((q0, u0, p)) if eqx.is_inexact_array(x)]
+    nonfinite = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+    q0, u0, p = jax.tree_util.tree_map(
+        lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+        if eqx.is_inexact_array(x) else x, (q0, u0, p))
+    return q0, u0, p, nonfinite
 
 
 def _check_shapes(dynamics, t0, q0, u0, p):

@@ -19,8 +19,8 @@ class RESULTS(diffrax.RESULTS):
         "is not finite there."
     )
     nonfinite_state_or_parameters = (
-        "The initial state or the parameters of this batch member contain NaN or inf; it was "
-        "not simulated (jaxdyn.simulate_batch)."
+        "The initial state or the parameters contain NaN or inf (simulate or simulate_batch "
+        "with throw=False): the results are NaN."
     )
 
 

@@ -63,6 +63,21 @@ def test_vmap_over_states_parameters_and_both(members):
     np.testing.assert_allclose(params, closed_form(0.5, -0.2, k), atol=CLOSED_FORM_ATOL)
 
 
+def test_vmapped_simulate_with_a_nan_member_and_throw_false(members):
+    """jax.vmap over simulate(throw=False): a member with a NaN parameter gets its own code
+    and NaN states; the others are the closed form."""
+    x0, v0, k = members["x0"], members["v0"], members["k"].copy()
+    k[3] = np.nan
+    solution = jax.jit(jax.vmap(lambda x, v, k: jaxdyn.simulate(
+        OSCILLATOR, x[None], v[None], {"m": 1.0, "k": k}, throw=False, **OPTIONS)))(x0, v0, k)
+    bad = np.asarray(solution.result == jaxdyn.RESULTS.nonfinite_state_or_parameters)
+    assert bad.tolist() == [i == 3 for i in range(21)]
+    assert bool(np.all(np.isnan(solution.q[3])))
+    good = np.arange(21) != 3
+    np.testing.assert_allclose(solution.q[good, :, 0], closed_form(x0[good], v0[good], k[good]),
+                               atol=CLOSED_FORM_ATOL)
+
+
 def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
     x0, v0, k = members["x0"][:, None], members["v0"][:, None], members["k"]
     p = {"m": 1.0, "k": k}
