@@ -65,8 +65,8 @@ def simulate_batch(
     Batches larger than memory run in chunks, one compiled solve reused for every chunk, each
     chunk's results moved to host memory before the next starts. With 8 or more members per
     device, a Runge–Kutta solver whose `scan_kind` is left at None runs its stages as a bounded
-    loop: vmapped, XLA compiles the equations inside it about 1.4× faster than inside
-    diffrax's default stage loop (same arithmetic, same results).
+    loop: vmapped, the whole solve runs about 1.3× faster than with diffrax's default stage
+    loop (same arithmetic, same results).
 
     **Arguments:**
 
@@ -97,9 +97,8 @@ def simulate_batch(
       initial state and parameters, and jaxdyn's message for the failure (the time and state
       where it happened, from a re-run of that member alone). With False, every member carries
       its own `result` code and the others are unaffected; a member whose initial state or
-      parameters hold NaN or inf is not simulated (a finite member's input stands in, so
-      that it costs what a real member costs; NaN results and
-      `RESULTS.nonfinite_state_or_parameters`).
+      parameters hold NaN or inf gets NaN results and `RESULTS.nonfinite_state_or_parameters`
+      (as from `jaxdyn.simulate` with throw=False).
 
     **Returns:** one `jaxdyn.Solution` whose every field has a leading batch axis of size B.
     Its arrays are JAX arrays with one chunk in one process, NumPy arrays in host memory
@@ -138,11 +137,11 @@ def simulate_batch(
     mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
     width = mesh.devices.size
     chunk = _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, options)
-    setup = (dynamics, mesh, tuple(sorted(options.items())))
 
     traced = any(isinstance(x, jax.core.Tracer)
                  for x in jax.tree_util.tree_leaves((dynamics, batched, shared)))
     if traced:
+        setup = (dynamics, mesh, tuple(sorted(options.items())))
         return _staged(setup, batched, shared, size, chunk, throw)
 
     if chunk // width >= LANES:
@@ -190,8 +189,8 @@ def simulate_batch(
 
 def _batched_stages(options):
     """The options with a Runge–Kutta solver's stages run as a bounded loop (unless the user
-    chose a kind). Vmapped over a batch, XLA compiles the equations of motion inside it 1.3×
-    faster than inside diffrax's default (checkpointed) stage loop; a single solve, and reverse
+    chose a kind). Vmapped over a batch, the solve runs about 1.3× faster than with diffrax's
+    default (checkpointed) stage loop; a single solve, and reverse
     mode, are faster with the default (benchmarks/README.md), so this is for the eager batch
     of at least `LANES` members per device, which is not differentiated, alone."""
     solver = options.get("solver", _DEFAULT_SOLVER)
@@ -259,34 +258,9 @@ def _member(dynamics, member, shared, options):
 
 
 def _members(dynamics, members, shared, options):
-    """A vmapped solve of the members; those with a non-finite input are not simulated: they
-    take a finite member's input (the cost of the solve stays that of real members) and get
-    NaN results and `RESULTS.nonfinite_state_or_parameters`."""
-    leaves = jax.tree_util.tree_leaves(members)
-    finite = jnp.stack([jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
-                        for x in leaves if jnp.issubdtype(x.dtype, jnp.inexact)]).all(axis=0)
-    stand_in = jnp.argmax(finite)
-
-    def replace(x):
-        if not jnp.issubdtype(x.dtype, jnp.inexact):
-            return x
-        mask = finite.reshape((-1,) + (1,) * (x.ndim - 1))
-        return jnp.where(mask, x, jnp.where(finite.any(), x[stand_in], jnp.nan_to_num(
-            x, nan=0.0, posinf=0.0, neginf=0.0)))
-
-    members = jax.tree_util.tree_map(replace, members)
-    solution = jax.vmap(_member, in_axes=(None, 0, None, None))(dynamics, members, shared,
-                                                                 options)
-
-    def mark(x):
-        if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact):
-            return jnp.where(finite.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
-        return x
-
-    ts, solution = solution.ts, jax.tree_util.tree_map(mark, solution)
-    result = jax.vmap(lambda ok, r: RESULTS.where(ok, r, RESULTS.nonfinite_state_or_parameters))(
-        finite, solution.result)
-    return eqx.tree_at(lambda s: (s.ts, s.result), solution, (ts, result))
+    """A vmapped solve of the members (with throw=False, `simulate` gives a member whose
+    initial state or parameters are not finite its own result code and NaN results)."""
+    return jax.vmap(_member, in_axes=(None, 0, None, None))(dynamics, members, shared, options)
 
 
 def _sharded(setup, members, shared):
