@@ -26,6 +26,11 @@ from ._fit.parametrisation import (
 from ._fit.uncertainty import Uncertainty as Uncertainty
 from ._integrate import simulate as simulate
 from ._batch import simulate_batch as simulate_batch
+from ._variational import (
+    AbstractStructurePreserving as AbstractStructurePreserving,
+    StormerVerlet as StormerVerlet,
+    VariationalIntegrator as VariationalIntegrator,
+)
 from ._solution import (
     RESULTS as RESULTS,
     ConstraintRecord as ConstraintRecord,

@@ -1,9 +1,12 @@
 """`simulate`: the single jit-compiled entry point that integrates any dynamics with diffrax."""
 
+import math
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._dynamics import (
     AbstractDynamics,
@@ -17,11 +20,18 @@ from ._errors import check_finite, check_static_indexing, error_if, reports_stat
 from ._form.constraints import Constrained
 from ._solution import RESULTS, ConstraintRecord, Solution
 from ._state import check_vector, numbers_as_arrays, state_dtype
+from ._variational import AbstractStructurePreserving
 
 MAX_STEPS = (
-    "The solver took the maximum number of steps (max_steps) before reaching t1. Increase "
-    "`max_steps`, loosen `rtol`/`atol`, shorten the interval, or check the system: very fast "
-    "or stiff motion (a huge stiffness, a near-singular mass matrix) forces tiny steps."
+    "The solver took the maximum number of steps (max_steps) before reaching t1: pass a "
+    "larger `max_steps` (the estimate below scales the steps taken to the whole interval), "
+    "loosen `rtol`/`atol`, or shorten the interval. If the steps are tiny, check the system: "
+    "stiff motion (a huge stiffness; see `jaxdyn.stiffness` and an implicit solver such as "
+    "diffrax.Kvaerno5) or a near-singular mass matrix (see `mass_matrix_condition`)."
+)
+NEWTON = (
+    "The implicit step's Newton iteration did not converge (the structure-preserving solver's "
+    "`max_newton_steps`): the step is too long for the motion there. Take a smaller `dt0`."
 )
 
 
@@ -49,7 +59,7 @@ def simulate(
     atol: float | None = None,
     dt0=None,
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    max_steps: int = 16**4,
+    max_steps: int | None = None,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
     throw: bool = True,
 ) -> Solution:
@@ -73,9 +83,14 @@ def simulate(
       first step. Mechanics is smooth, so a high order pays (see the solver guide in the
       README and benchmarks/bench_work_precision.py). Pass `solver=diffrax.Tsit5()` and
       looser tolerances for speed, or a fixed `dt0` with
-      `stepsize_controller=diffrax.ConstantStepSize()` for fixed-step integration.
-    - `max_steps`: step budget; exhausting it is an error (or `RESULTS.max_steps_reached` with
-      `throw=False`).
+      `stepsize_controller=diffrax.ConstantStepSize()` for fixed-step integration. For long
+      horizons, `jaxdyn.VariationalIntegrator()` (any Lagrangian) or `jaxdyn.StormerVerlet()`
+      (separable systems) with a fixed step `dt0` keep the energy error bounded; for stiff
+      systems use an implicit solver such as `diffrax.Kvaerno5()` (see `jaxdyn.stiffness`).
+    - `max_steps`: step budget; exhausting it is an error that estimates the steps the whole
+      interval needs (or `RESULTS.max_steps_reached` with `throw=False`). Default: 16⁴ =
+      65 536, or with fixed steps (concrete t0, t1, dt0) the number of steps the interval
+      takes, if that is more.
     - `adjoint`: how to differentiate. The default, diffrax's `RecursiveCheckpointAdjoint`,
       is reverse mode through the discrete solve (exactly what finite differences of the
       solve give) with about √(2 max_steps) checkpoints, a memory bound that also holds under
@@ -98,12 +113,16 @@ def simulate(
     `nonfinite_equations`).
     """
     dtype = state_dtype(q0, u0)
-    if stepsize_controller is None:  # defaults filled in here, so that they are traced too
+    if isinstance(solver, AbstractStructurePreserving):
+        stepsize_controller = _fixed_steps(solver, rtol, atol, dt0, stepsize_controller)
+    elif stepsize_controller is None:  # defaults filled in here, so that they are traced too
         default = 1e-10 if jnp.finfo(dtype).bits == 64 else 1e-6
         rtol = default if rtol is None else rtol
         atol = default if atol is None else atol
     elif rtol is not None or atol is not None:
         raise ValueError("Pass rtol/atol or a stepsize_controller, not both.")
+    _check_tolerances(rtol, atol)
+    max_steps = _step_budget(max_steps, t0, t1, dt0, stepsize_controller)
     numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), dtype)
     # Few arguments: binding them is part of the per-call cost.
     save = (save,) if isinstance(save, str) else tuple(save)
@@ -136,6 +155,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
+    if isinstance(solver, AbstractStructurePreserving):
+        solver.check(dynamics, t0, q0, u0, p)
+    rtol, atol = _checked_tolerances(rtol, atol)
     if throw:
         q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
         nonfinite_input = None
@@ -158,9 +180,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
     if ts is None:
         requested = diffrax.SubSaveAt(t1=True, fn=observe)
     else:
-        ts = jnp.asarray(ts, dtype)
-        if ts.ndim != 1:
-            raise ValueError(f"ts must be a 1-D array of save times, got shape {ts.shape}.")
+        ts = _checked_save_times(jnp.asarray(ts, dtype), t0, t1)
         requested = diffrax.SubSaveAt(ts=ts, fn=observe)
     # The last state reached is saved too: where the solve stops early, it is the state from
     # which the failure is diagnosed.
@@ -200,11 +220,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
         q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
     ts_out = solution.ts[0]
     if throw:
-        ts_out = error_if(ts_out, [(result == code, RESULTS[code]) for code in (
-            RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
-            RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)], failure)
-        ts_out = error_if(ts_out, [(result == RESULTS.max_steps_reached, MAX_STEPS)])
-        ts_out = result.error_if(ts_out, result != RESULTS.successful)
+        ts_out = _raise_failures(ts_out, result, failure, t0, t1, t_last, max_steps)
     qd = None
     if "qd" in save:
         qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
@@ -227,6 +243,113 @@ def _simulate(dynamics, q0, u0, numbers, options):
         dense=solution if dense else None,
         constraints=constraints,
     )
+
+
+def _fixed_steps(solver, rtol, atol, dt0, stepsize_controller):
+    """The step-size controller of a structure-preserving solver, which takes fixed steps."""
+    name = type(solver).__name__
+    if rtol is not None or atol is not None:
+        raise ValueError(f"{name} takes fixed steps, without error control: pass the step as "
+                         "dt0, not rtol/atol.")
+    if dt0 is None:
+        raise ValueError(f"{name} takes fixed steps: pass the step length as dt0.")
+    if stepsize_controller is None:
+        return diffrax.ConstantStepSize()
+    if isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController):
+        raise ValueError(f"{name} takes fixed steps (an adaptive step destroys the "
+                         "conservation it gives): use diffrax.ConstantStepSize() or "
+                         "StepTo, or leave stepsize_controller unset.")
+    return stepsize_controller
+
+
+def _concrete(x):
+    return x is None or not any(isinstance(leaf, jax.core.Tracer)
+                                for leaf in jax.tree_util.tree_leaves(x))
+
+
+def _tolerance_problem(rtol, atol):
+    """None, or what is wrong with the tolerances (`rtol`, `atol` arrays)."""
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if value is not None and not np.all(np.isfinite(value) & (value >= 0)):
+            return f"{name} must be finite and ≥ 0, got {value}."
+    if rtol is not None and atol is not None and np.all(rtol + atol == 0):
+        return "rtol and atol are both 0: no step could meet them. Pass positive tolerances."
+    return None
+
+
+def _check_tolerances(rtol, atol):
+    """Trace-time check of concrete tolerances (traced ones are checked in the solve)."""
+    if _concrete((rtol, atol)):
+        as_array = lambda x: None if x is None else np.asarray(x)  # noqa: E731
+        problem = _tolerance_problem(as_array(rtol), as_array(atol))
+        if problem is not None:
+            raise ValueError(problem)
+
+
+def _checked_tolerances(rtol, atol):
+    if rtol is None or atol is None:
+        return rtol, atol
+    bad = (~jnp.isfinite(rtol) | ~jnp.isfinite(atol) | (rtol < 0) | (atol < 0)
+           | (rtol + atol == 0))
+    return error_if((rtol, atol), [(bad, "rtol and atol must be finite and ≥ 0, and not both "
+                                         "0.")], {"rtol": rtol, "atol": atol})
+
+
+def _checked_save_times(ts, t0, t1):
+    """`ts`, or an error if they are not 1-D, leave [t0, t1], or run against the direction of
+    integration (a value-dependent check: one branch, taken on failure)."""
+    if ts.ndim != 1:
+        raise ValueError(f"ts must be a 1-D array of save times, got shape {ts.shape}.")
+    if ts.shape[0] == 0:
+        raise ValueError("ts is empty: pass at least one save time, or ts=None to save t1.")
+    direction = jnp.where(t1 >= t0, 1, -1).astype(ts.dtype)
+    outside = jnp.any((ts - t0) * direction < 0) | jnp.any((ts - t1) * direction > 0)
+    against = jnp.any(jnp.diff(ts) * direction < 0)
+    return error_if(ts, [
+        (~jnp.all(jnp.isfinite(ts)), "ts contains NaN or inf."),
+        (outside, "ts must lie within the interval from t0 to t1."),
+        (against, "ts must run in the direction of integration: increasing for t1 > t0, "
+                  "decreasing for t1 < t0.")],
+        {"t0": t0, "t1": t1, "ts[0]": ts[0], "ts[-1]": ts[-1]})
+
+
+def _step_budget(max_steps, t0, t1, dt0, stepsize_controller):
+    """`max_steps`, or its default: 16⁴, or the steps a fixed step takes over the interval."""
+    if max_steps is not None:
+        if not isinstance(max_steps, int) or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+        return max_steps
+    budget = 16**4
+    fixed = (stepsize_controller is not None and not isinstance(
+        stepsize_controller, diffrax.AbstractAdaptiveStepSizeController))
+    if fixed and dt0 is not None and _concrete((t0, t1, dt0)):
+        span, step = abs(float(t1) - float(t0)), abs(float(dt0))
+        if step > 0:
+            budget = max(budget, math.ceil(span / step * (1 + 1e-9)) + 1)
+    return budget
+
+
+def _raise_failures(ts, result, failure, t0, t1, t_last, max_steps):
+    """`ts`, or an error whose first line is jaxdyn's account of why the solve failed."""
+    ts = error_if(ts, [(result == code, RESULTS[code]) for code in _EQUATION_FAILURES],
+                  failure)
+    covered = jnp.abs(t_last - t0)
+    needed = jnp.ceil(max_steps * jnp.abs(t1 - t0) / jnp.where(covered > 0, covered, 1))
+    ts = error_if(ts, [(result == RESULTS.max_steps_reached, MAX_STEPS)],
+                  {"t reached": t_last, "max_steps": jnp.asarray(max_steps),
+                   "steps the whole interval needs (estimate)": needed})
+    ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON)],
+                  {"t": t_last})
+    return error_if(ts, [(result == RESULTS._name_to_item[name],
+                          RESULTS[RESULTS._name_to_item[name]])
+                         for name in RESULTS._name_to_item if name not in _HANDLED])
+
+
+_EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
+                      RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)
+_HANDLED = {"successful", "max_steps_reached", "nonlinear_max_steps_reached",
+            "singular_mass_matrix", "singular_constraints", "nonfinite_forcing",
+            "nonfinite_equations"}
 
 
 def _finite_stand_in(q0, u0, p):

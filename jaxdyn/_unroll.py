@@ -669,3 +669,32 @@ _STRUCTURAL = {
     "scatter_add": _scatter_add,
     "scatter-add": _scatter_add,
 }
+
+
+def depends(fn, *args, tags) -> frozenset:
+    """The tags of the positional arguments that ``fn(*args)`` depends on, from the data flow
+    of its program (whole arrays, not elements: cheap for programs of any size). Calls are
+    followed into; other structured primitives (loops, custom derivatives) are taken to make
+    every output depend on every input. `tags` as for `structure`."""
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    closed = jax.make_jaxpr(lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)))(*leaves)
+    leaf_tags = [frozenset([tag]) for arg, tag in zip(args, tags)
+                 for _ in jax.tree_util.tree_leaves(arg)]
+    return frozenset().union(*_flow(closed.jaxpr, leaf_tags))
+
+
+def _flow(jaxpr, inputs):
+    env = dict(zip(jaxpr.invars, inputs))
+
+    def read(v):
+        return env.get(v, frozenset()) if isinstance(v, jex.Var) else frozenset()
+
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        sub = _inline_jaxpr(eqn)
+        if sub is not None:
+            outs = _flow(sub.jaxpr, ins)
+        else:
+            outs = [frozenset().union(*ins)] * len(eqn.outvars)
+        env.update(zip(eqn.outvars, outs))
+    return [read(v) for v in jaxpr.outvars]
