@@ -26,6 +26,7 @@ from ._fit.parametrisation import (
 from ._fit.uncertainty import Uncertainty as Uncertainty
 from ._integrate import simulate as simulate
 from ._batch import simulate_batch as simulate_batch
+from ._stiffness import Stiffness as Stiffness, stiffness as stiffness
 from ._variational import (
     AbstractStructurePreserving as AbstractStructurePreserving,
     StormerVerlet as StormerVerlet,

@@ -94,6 +94,15 @@ class AbstractDynamics(eqx.Module):
         check_static_indexing(self.user_functions, t, q, u, p)
         return unrolled(lambda *args: self.form_equations(*args)[0], t, q, u, p)
 
+    @public_method("(),(n),(m)->()")
+    def mass_matrix_condition(self, t, q, u, p=None):
+        """κ(M) = λ_max / λ_min, the 2-norm condition number of the mass matrix (symmetric):
+        near 1/ε it is numerically singular, and a growing κ along a trajectory announces a
+        coordinate singularity (Euler angles near gimbal lock, polar angles near the pole).
+        Infinite where M has a zero or negative eigenvalue."""
+        eigenvalues = jnp.linalg.eigvalsh(self.mass_matrix(t, q, u, p))
+        return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)
+
     @public_method("(),(n),(m)->(m)")
     def forcing(self, t, q, u, p=None):
         """The forcing f of M u̇ = f: every term of the equations except M u̇."""

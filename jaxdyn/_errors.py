@@ -34,7 +34,8 @@ def error_if(x, checks, state=None, *, failed=None):
     computing `failed` (say, a NaN in `x`), and finding its cause costs nothing until it
     happens. `state`: None, or (t, q, u) to end the message with "It happened at t = …, q =
     […], u = […]." (under vmap, the state of the first failing batch member), or a dict of
-    labelled values to end it with "It happened at label = …, …".
+    labelled values to end it with "It happened at label = …, …", or a function returning
+    one of these (evaluated only on failure: for values that cost something to compute).
 
     Values and derivatives of `x` pass through unchanged: the branch sees its inputs through
     `stop_gradient`, and only a boolean (False) comes back from it.
@@ -45,15 +46,17 @@ def error_if(x, checks, state=None, *, failed=None):
     messages = tuple(message for _, message in checks())
     if failed is None:
         failed = jnp.any(_preds(checks))
-    if state is None:
-        state = {}
-    elif not isinstance(state, dict):
-        state = dict(zip("tqu", state))
-    labels, state = tuple(state), tuple(state.values())
+    described = state if callable(state) else lambda: state
 
     def fail():
+        state = described()
+        if state is None:
+            state = {}
+        elif not isinstance(state, dict):
+            state = dict(zip("tqu", state))
+        labels = tuple(state)
         preds = jax.lax.stop_gradient(_preds(checks))
-        values = jax.lax.stop_gradient(state)
+        values = jax.lax.stop_gradient(tuple(state.values()))
         raise_ = functools.partial(_raise, messages, labels)
         return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds, *values,
                                  vmap_method="sequential")

@@ -1,5 +1,6 @@
 """`simulate`: the single jit-compiled entry point that integrates any dynamics with diffrax."""
 
+import functools
 import math
 
 import diffrax
@@ -28,6 +29,25 @@ MAX_STEPS = (
     "loosen `rtol`/`atol`, or shorten the interval. If the steps are tiny, check the system: "
     "stiff motion (a huge stiffness; see `jaxdyn.stiffness` and an implicit solver such as "
     "diffrax.Kvaerno5) or a near-singular mass matrix (see `mass_matrix_condition`)."
+)
+MAX_STEPS_ILL_CONDITIONED = (
+    "The solver took the maximum number of steps (max_steps) before reaching t1, and the mass "
+    "matrix is ill-conditioned where it stopped (condition number below): the motion is "
+    "approaching a singular configuration of the coordinates (a coordinate singularity: a "
+    "polar angle near its pole, Euler angles near gimbal lock, r → 0 in polar coordinates), "
+    "where some speeds grow without bound and the steps shrink. Remedy: coordinates without a "
+    "singularity there (quaternions, as in jaxdyn.Spherical and jaxdyn.Free joints; other "
+    "angles) or Cartesian coordinates with constraints (jaxdyn.Constrained). Follow "
+    "`mass_matrix_condition` along the trajectory to see it coming."
+)
+COORDINATE_SINGULARITY = (
+    "The mass matrix became singular along the motion, though it is regular at the initial "
+    "state: the motion reached a singular configuration of the coordinates (a coordinate "
+    "singularity: a polar angle at its pole, Euler angles at gimbal lock, r = 0 in polar "
+    "coordinates). Remedy: coordinates without a singularity there (quaternions, as in "
+    "jaxdyn.Spherical and jaxdyn.Free joints; other angles) or Cartesian coordinates with "
+    "constraints (jaxdyn.Constrained). Follow `mass_matrix_condition` along the trajectory to "
+    "see it coming."
 )
 NEWTON = (
     "The implicit step's Newton iteration did not converge (the structure-preserving solver's "
@@ -220,7 +240,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
         q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
     ts_out = solution.ts[0]
     if throw:
-        ts_out = _raise_failures(ts_out, result, failure, t0, t1, t_last, max_steps)
+        condition = functools.partial(_condition, dynamics, p)
+        ts_out = _raise_failures(ts_out, result, failure, (t0, q0, u0), t1,
+                                 (t_last, q_last[0], u_last[0]), max_steps, condition)
     qd = None
     if "qd" in save:
         qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
@@ -329,21 +351,54 @@ def _step_budget(max_steps, t0, t1, dt0, stepsize_controller):
     return budget
 
 
-def _raise_failures(ts, result, failure, t0, t1, t_last, max_steps):
-    """`ts`, or an error whose first line is jaxdyn's account of why the solve failed."""
-    ts = error_if(ts, [(result == code, RESULTS[code]) for code in _EQUATION_FAILURES],
-                  failure)
+def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition):
+    """`ts`, or an error whose first line is jaxdyn's account of why the solve failed.
+
+    Where the mass matrix is singular at the failure but regular at the start, or the solve
+    ran out of steps where it is ill-conditioned, the cause named is the configuration (a
+    coordinate singularity). `condition(t, q, u)`, the mass matrix's condition number, is
+    evaluated only on failure."""
+    t0 = start[0]
+    t_last = last[0]
+
+    def singular_checks():
+        regular_at_start = condition(*start) < _ILL_CONDITIONED
+        singular = result == RESULTS.singular_mass_matrix
+        return ([(singular & regular_at_start, COORDINATE_SINGULARITY)]
+                + [(result == code, RESULTS[code]) for code in _EQUATION_FAILURES])
+
+    failed = jnp.any(jnp.stack([result == code for code in _EQUATION_FAILURES]))
+    ts = error_if(ts, singular_checks, failure, failed=failed)
     covered = jnp.abs(t_last - t0)
     needed = jnp.ceil(max_steps * jnp.abs(t1 - t0) / jnp.where(covered > 0, covered, 1))
-    ts = error_if(ts, [(result == RESULTS.max_steps_reached, MAX_STEPS)],
-                  {"t reached": t_last, "max_steps": jnp.asarray(max_steps),
-                   "steps the whole interval needs (estimate)": needed})
+
+    def budget_checks():
+        ill = condition(*last) >= _ILL_CONDITIONED
+        out_of_steps = result == RESULTS.max_steps_reached
+        return [(out_of_steps & ill, MAX_STEPS_ILL_CONDITIONED), (out_of_steps, MAX_STEPS)]
+
+    ts = error_if(ts, budget_checks, lambda: {
+        "t reached": t_last, "max_steps": jnp.asarray(max_steps),
+        "steps the whole interval needs (estimate)": needed,
+        "mass matrix condition number (start, last)": jnp.stack(
+            [condition(*start), condition(*last)])},
+        failed=result == RESULTS.max_steps_reached)
     ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON)],
                   {"t": t_last})
     return error_if(ts, [(result == RESULTS._name_to_item[name],
                           RESULTS[RESULTS._name_to_item[name]])
                          for name in RESULTS._name_to_item if name not in _HANDLED])
 
+
+def _condition(dynamics, p, t, q, u):
+    """κ(M) at one state, from its eigenvalues (∞ where M is not positive definite)."""
+    mass_matrix = jax.lax.stop_gradient(dynamics.form_equations(t, q, u, p)[0])
+    eigenvalues = jnp.linalg.eigvalsh(mass_matrix)
+    return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)
+
+
+# A mass matrix this ill-conditioned loses half the digits of the accelerations.
+_ILL_CONDITIONED = 1e8
 
 _EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
                       RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)

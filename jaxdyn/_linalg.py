@@ -11,8 +11,11 @@ SINGULAR_MASS_MATRIX = (
     "  - a coordinate carries no inertia (a massless body, or a speed the kinetic energy does "
     "not depend on);\n"
     "  - the coordinates are redundant (two of them describe the same motion);\n"
-    "  - the configuration is singular for this parametrisation (e.g. gimbal lock of Euler "
-    "angles, r = 0 in polar coordinates);\n"
+    "  - the configuration is singular for this parametrisation (a coordinate singularity: "
+    "gimbal lock of Euler angles, a spherical pendulum at the pole of its polar angle, r = 0 "
+    "in polar coordinates); remedy: coordinates without a singularity there (quaternions, as "
+    "in jaxdyn.Spherical and jaxdyn.Free joints; other angles), or Cartesian coordinates "
+    "with constraints (jaxdyn.Constrained);\n"
     "  - a non-physical parameter (zero or negative mass or inertia);\n"
     "  - the kinetic energy is not convex in the speeds (wrong sign, or not quadratic)."
 )
