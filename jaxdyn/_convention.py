@@ -10,6 +10,7 @@ optax see them.
 
 import inspect
 
+import jax
 import jax.numpy as jnp
 
 VELOCITY_ARGS = ("q", "qd", "p")
@@ -39,7 +40,33 @@ def call(fn, name: str, time_dependent: bool, argnames: tuple[str, ...], t, *arg
                 f"(time_dependent={time_dependent}), but its signature is "
                 f"{signature}: {e}. {hint}"
             ) from None
-    return fn(*full)
+    try:
+        return fn(*full)
+    except CallbackError:
+        raise
+    except Exception as e:  # noqa: BLE001 (re-raised with the callback named)
+        raise CallbackError(_explain(e, name, names, full)) from e
+
+
+class CallbackError(ValueError):
+    """A user callback raised while jaxdyn traced it: the message names the callback."""
+
+
+def _explain(error, name, names, args):
+    shapes = ", ".join(f"{n} of shape {tuple(a.shape)}" for n, a in zip(names, args)
+                       if hasattr(a, "shape"))
+    message = (f"{name[:1].upper() + name[1:]}, called as {name.split()[-1]}({', '.join(names)})"
+               f"{' with ' + shapes if shapes else ''}, raised {type(error).__name__}: {error}")
+    if isinstance(error, KeyError | IndexError | TypeError) and "p" in names:
+        parameters = args[names.index("p")]
+        keys = sorted(map(str, parameters)) if isinstance(parameters, dict) else None
+        message += (f"\n\nIs a parameter missing from p? It has keys {keys}." if keys
+                    is not None else f"\n\nCheck the parameters p passed: got "
+                    f"{type(parameters).__name__}.")
+    if isinstance(error, jax.errors.ConcretizationTypeError | jax.errors.TracerBoolConversionError):
+        message += ("\n\nCallbacks are traced by JAX: branch with jnp.where or jax.lax.cond, "
+                    "not Python `if` on values of q, qd or p.")
+    return message
 
 
 def scalar(value, name: str):

@@ -41,13 +41,14 @@ MAX_STEPS_ILL_CONDITIONED = (
     "`mass_matrix_condition` along the trajectory to see it coming."
 )
 COORDINATE_SINGULARITY = (
-    "The mass matrix became singular along the motion, though it is regular at the initial "
-    "state: the motion reached a singular configuration of the coordinates (a coordinate "
-    "singularity: a polar angle at its pole, Euler angles at gimbal lock, r = 0 in polar "
-    "coordinates). Remedy: coordinates without a singularity there (quaternions, as in "
-    "jaxdyn.Spherical and jaxdyn.Free joints; other angles) or Cartesian coordinates with "
-    "constraints (jaxdyn.Constrained). Follow `mass_matrix_condition` along the trajectory to "
-    "see it coming."
+    "The mass matrix became singular along the motion, though it is positive definite at the "
+    "initial state. Most often the motion reached a singular configuration of the coordinates "
+    "(a coordinate singularity: a polar angle at its pole, Euler angles at gimbal lock, r = 0 "
+    "in polar coordinates); remedy: coordinates without a singularity there (quaternions, as "
+    "in jaxdyn.Spherical and jaxdyn.Free joints; other angles) or Cartesian coordinates with "
+    "constraints (jaxdyn.Constrained). Otherwise the kinetic energy is not positive definite "
+    "in the speeds everywhere (check its terms). Follow `mass_matrix_condition` along the "
+    "trajectory to see it coming."
 )
 NEWTON = (
     "The implicit step's Newton iteration did not converge (the structure-preserving solver's "
@@ -172,6 +173,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
             f"{type(dynamics).__name__}."
         )
     dtype = q0.dtype
+    _check_parameter_dtypes(p, dtype)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
@@ -405,6 +407,21 @@ _EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints
 _HANDLED = {"successful", "max_steps_reached", "nonlinear_max_steps_reached",
             "singular_mass_matrix", "singular_constraints", "nonfinite_forcing",
             "nonfinite_equations"}
+
+
+def _check_parameter_dtypes(p, dtype):
+    """Parameters share the state's real floating dtype: mixed precision would either be
+    promoted silently (float32 work done in float64, or the reverse) or fail deep inside."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(p):
+        if not eqx.is_inexact_array(leaf) or leaf.dtype == dtype:
+            continue
+        where = f"p{jax.tree_util.keystr(path)}"
+        if jnp.issubdtype(leaf.dtype, jnp.complexfloating):
+            raise ValueError(f"{where} is complex ({leaf.dtype}): parameters must be real.")
+        raise ValueError(
+            f"{where} has dtype {leaf.dtype} but the state (q0, u0) is {dtype}: mixed "
+            "precision is not accepted. Cast the parameters to the state's dtype, e.g. "
+            f"jax.tree.map(lambda x: x.astype(jnp.{dtype}), p), or the state to theirs.")
 
 
 def _finite_stand_in(q0, u0, p):

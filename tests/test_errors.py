@@ -8,6 +8,7 @@ that names the state; solver failures → a RESULTS member, raised unless throw=
 import re
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -22,6 +23,8 @@ Q0 = np.array([0.3])
 U0 = np.array([0.0])
 
 SINGULAR = r"^The mass matrix is singular or not positive definite"
+BECAME_SINGULAR = (r"^The mass matrix became singular along the motion, though it is positive "
+                   r"definite")
 NONFINITE = r"^The generalized forcing \(the right-hand side of M a = f\) contains NaN or inf"
 
 
@@ -207,7 +210,7 @@ def test_mass_matrix_becomes_singular_during_the_solve_polar_coordinates():
     """A free particle in polar coordinates aimed at the origin: M = diag(m, m r²) is singular
     at r = 0, reached at t = 1 (fixed steps of 0.25 land exactly there)."""
     polar = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * p["m"] * (qd[0] ** 2 + q[0] ** 2 * qd[1] ** 2))
-    with pytest.raises(RuntimeError, match=SINGULAR) as info:
+    with pytest.raises(RuntimeError, match=BECAME_SINGULAR) as info:
         jaxdyn.simulate(polar, np.array([1.0, 0.0]), np.array([-1.0, 0.0]), {"m": 1.0}, t1=2.0,
                         dt0=0.25, stepsize_controller=diffrax.ConstantStepSize())
     t, q, u = _state_in_message(str(info.value))
@@ -222,7 +225,7 @@ def test_mass_matrix_loses_definiteness_during_an_adaptive_solve():
     system = jaxdyn.Lagrangian(
         lambda q, qd, p: 0.5 * qd[0] ** 2 + 0.5 * (p["a"] - q[0]) * qd[1] ** 2
     )
-    with pytest.raises(RuntimeError, match=SINGULAR) as info:
+    with pytest.raises(RuntimeError, match=BECAME_SINGULAR) as info:
         jaxdyn.simulate(system, np.array([0.0, 0.0]), np.array([1.0, 0.0]), {"a": 1.0}, t1=3.0)
     t, q, u = _state_in_message(str(info.value))
     assert 1.0 - 1e-12 <= t < 3.0
@@ -301,3 +304,98 @@ def test_callback_indexing_past_the_coordinates_is_an_error():
     system = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd[0] ** 2 + 0.5 * qd[1] ** 2)
     with pytest.raises((ValueError, IndexError), match=r"(?i)index|bounds|shape"):
         jaxdyn.simulate(system, Q0, np.array([1.0]), None, t1=1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Hostile arguments of simulate: tolerances, save times, step budget, parameters, callbacks
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rtol, atol, message", [
+    (0.0, 0.0, r"^rtol and atol are both 0"),
+    (-1e-6, 1e-6, r"^rtol must be finite and ≥ 0, got -1e-06"),
+    (1e-6, float("nan"), r"^atol must be finite and ≥ 0, got nan"),
+    (float("inf"), 1e-6, r"^rtol must be finite and ≥ 0"),
+])
+def test_bad_tolerances_are_named(rtol, atol, message):
+    with pytest.raises(ValueError, match=message):
+        jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0, rtol=rtol, atol=atol)
+
+
+def test_traced_bad_tolerances_are_named_before_the_solve():
+    """Under jit the tolerances are values: the check runs in the compiled solve."""
+    run = jax.jit(lambda tol: jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0, rtol=tol, atol=tol).q)
+    with pytest.raises(Exception, match="rtol and atol must be finite and ≥ 0, and not both 0"):
+        jax.block_until_ready(run(0.0))
+    np.testing.assert_allclose(run(1e-8), jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0).q, atol=1e-7)
+
+
+@pytest.mark.parametrize("t1, ts, message", [
+    (1.0, [0.5, 1.5], r"^ts must lie within the interval from t0 to t1"),
+    (1.0, [-0.1, 0.5], r"^ts must lie within the interval from t0 to t1"),
+    (-1.0, [-0.2, -0.5, -2.0], r"^ts must lie within the interval from t0 to t1"),
+    (-1.0, [-1.0, -0.5], r"^ts must run in the direction of integration"),
+    (1.0, [0.5, 0.2], r"^ts must run in the direction of integration"),
+    (1.0, [0.5, float("nan")], r"^ts contains NaN or inf"),
+])
+def test_bad_save_times_are_named(t1, ts, message):
+    with pytest.raises(RuntimeError, match=message) as info:
+        jaxdyn.simulate(PEND, Q0, U0, P, t1=t1, ts=np.array(ts))
+    assert "It happened at t0 = 0.0, t1 = " in str(info.value)
+
+
+def test_backward_save_times_are_accepted():
+    ts = np.array([0.0, -0.5, -1.0])
+    sol = jaxdyn.simulate(PEND, Q0, U0, P, t1=-1.0, ts=ts)
+    forward = jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0, ts=-ts)  # the pendulum is reversible
+    np.testing.assert_allclose(sol.q, forward.q, atol=1e-9)
+
+
+def test_empty_save_times_and_bad_step_budgets():
+    with pytest.raises(ValueError, match="ts is empty"):
+        jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0, ts=np.array([]))
+    for bad in (0, -5, 10.5):
+        with pytest.raises(ValueError, match="max_steps must be a positive int"):
+            jaxdyn.simulate(PEND, Q0, U0, P, t1=1.0, max_steps=bad)
+
+
+def test_max_steps_error_estimates_the_steps_needed():
+    """The estimate scales the steps taken to the whole interval: within a factor of two of
+    what the solve then takes (the pendulum's steps are uniform over its periods)."""
+    with pytest.raises(RuntimeError, match=r"^The solver took the maximum number of steps") as e:
+        jaxdyn.simulate(PEND, Q0, U0, P, t1=100.0, max_steps=50)
+    estimate = float(re.search(r"steps the whole interval needs \(estimate\) = (\S+?),",
+                               str(e.value)).group(1))
+    taken = int(jaxdyn.simulate(PEND, Q0, U0, P, t1=100.0, max_steps=10_000).num_steps)
+    assert taken / 2 < estimate < 2 * taken
+
+
+def test_mixed_precision_and_complex_parameters_are_rejected():
+    with pytest.raises(ValueError, match=r"p\['m'\] has dtype float64 but the state \(q0, u0\) "
+                                         r"is float32"):
+        jaxdyn.simulate(PEND, Q0.astype(np.float32), U0.astype(np.float32),
+                        {**P, "m": np.array(1.0, np.float64)}, t1=1.0)
+    with pytest.raises(ValueError, match=r"p\['m'\] is complex"):
+        jaxdyn.simulate(PEND, Q0, U0, {**P, "m": np.array(1.0, np.complex128)}, t1=1.0)
+
+
+def test_a_missing_parameter_is_named():
+    with pytest.raises(ValueError, match=r"raised KeyError: 'm'(.|\n)*Is a parameter missing "
+                                         r"from p\? It has keys \['g', 'l'\]"):
+        jaxdyn.simulate(PEND, Q0, U0, {"g": 9.81, "l": 1.0}, t1=1.0)
+
+
+def test_a_callback_that_raises_is_named():
+    def potential(q, p):
+        raise ZeroDivisionError("division by zero")
+
+    system = jaxdyn.Lagrangian(_kinetic, potential)
+    with pytest.raises(ValueError, match=r"^Potential energy V, called as V\(q, p\) with q of "
+                                         r"shape \(1,\), raised ZeroDivisionError"):
+        jaxdyn.simulate(system, Q0, U0, {"m": 1.0}, t1=1.0)
+
+
+def test_a_python_branch_on_traced_values_gets_a_hint():
+    system = jaxdyn.Lagrangian(_kinetic, lambda q, p: q[0] if q[0] > 0 else -q[0])
+    with pytest.raises(ValueError, match=r"jnp.where or jax.lax.cond"):
+        jaxdyn.simulate(system, Q0, U0, {"m": 1.0}, t1=1.0)
