@@ -170,11 +170,12 @@ def articulated_body_algorithm(tree, t, q, u, p):
         # algebra. In a scan every link has the tree's widest joint, padded columns pinned.
         k = max(1, int(np.sum(pad == 0))) if isinstance(pad, np.ndarray) else width
         s, pad, torque = s[:, :k], pad[:k], torque[:k]
+        pinned = jnp.asarray(pad, dtype)  # a NumPy constant: in the state's dtype
         articulated = own_inertia + inertia_c
         articulated_bias = own_bias + bias_c
         u_matrix = spatial.matmul(articulated, s)  # U = I^A S
         st = jnp.swapaxes(s, -1, -2)
-        d = spatial.matmul(st, u_matrix) + jnp.diag(pad)
+        d = spatial.matmul(st, u_matrix) + jnp.diag(pinned)
         lower, pivots = ldl(d)
         reciprocals = 1 / pivots
         residual = torque - _matvec6(st, articulated_bias)
@@ -185,7 +186,7 @@ def articulated_body_algorithm(tree, t, q, u, p):
                         + _matvec6(u_matrix, d_inv_residual))
         xt = jnp.swapaxes(x, -1, -2)
         up = (spatial.matmul(xt, spatial.matmul(reduced, x)), _matvec6(xt, reduced_bias))
-        scale = jnp.max(jnp.abs(jnp.diagonal(d)) * (1 - pad)) + jnp.finfo(dtype).tiny
+        scale = jnp.max(jnp.abs(jnp.diagonal(d)) * (1 - pinned)) + jnp.finfo(dtype).tiny
         failed = jnp.any((pivots <= k * jnp.finfo(dtype).eps * scale) & (pad == 0))
         widen = ((0, 0),) * (u_matrix.ndim - 1) + ((0, width - k),)
         return (jnp.pad(u_matrix, widen), jnp.pad(d_inv_ut, widen),

@@ -46,8 +46,9 @@ class AbstractMultibody(eqx.Module):
         where they are not (quaternions, nonholonomic speeds)."""
 
     @abc.abstractmethod
-    def inertias(self, p):
-        """(masses (N,), inertia tensors about the centres of mass, body axes (N, 3, 3))."""
+    def inertias(self, p, dtype):
+        """(masses (N,), inertia tensors about the centres of mass, body axes (N, 3, 3)), in
+        `dtype` (the state's: constants of a description never set the precision)."""
 
     @abc.abstractmethod
     def body_velocities(self, t, q, u, p, kinematic_map=None):
@@ -78,7 +79,7 @@ class AbstractMultibody(eqx.Module):
 
     def kinetic_energy(self, t, q, u, p, kinematic_map=None):
         """T = Σ ½ m v_G·v_G + ½ ω·I ω."""
-        masses, inertias = self.inertias(p)
+        masses, inertias = self.inertias(p, q.dtype)
         v, omega = self.body_velocities(t, q, u, p, kinematic_map)
         rotational = jnp.sum(omega * jnp.einsum("nij,nj->ni", inertias, omega))
         return 0.5 * (jnp.sum(masses * jnp.sum(v * v, axis=-1)) + rotational)
@@ -95,7 +96,7 @@ class AbstractMultibody(eqx.Module):
 
     def gibbs_function(self, t, q, u, ud, p, kinematic_map=None):
         """S = Σ ½ m a_G·a_G + ½ α·I α + α·(ω × I ω) (dropping terms free of u̇)."""
-        masses, inertias = self.inertias(p)
+        masses, inertias = self.inertias(p, q.dtype)
         (_, omega), (a, alpha) = self.body_accelerations(t, q, u, ud, p, kinematic_map)
         i_alpha = jnp.einsum("nij,nj->ni", inertias, alpha)
         i_omega = jnp.einsum("nij,nj->ni", inertias, omega)
@@ -118,7 +119,7 @@ class AbstractMultibody(eqx.Module):
 
     def generalized_inertia_forces(self, t, q, u, ud, p, kinematic_map=None, partials=None):
         """F*_r = −Σ m a_G·v_r − Σ (I α + ω × I ω)·ω_r (Kane)."""
-        masses, inertias = self.inertias(p)
+        masses, inertias = self.inertias(p, q.dtype)
         if partials is None:
             partials = self.partial_velocities(t, q, u, p, kinematic_map)
         v_r, w_r = partials
@@ -130,20 +131,20 @@ class AbstractMultibody(eqx.Module):
 
     def kane_mass_matrix(self, p, partials):
         """M_rs = Σ m v_r·v_s + ω_r·I ω_s from the partial velocities."""
-        masses, inertias = self.inertias(p)
+        masses, inertias = self.inertias(p, partials[0].dtype)
         v_r, w_r = partials
         return (jnp.einsum("n,nir,nis->rs", masses, v_r, v_r)
                 + jnp.einsum("nir,nij,njs->rs", w_r, inertias, w_r))
 
     def linear_momentum(self, t, q, u, p, kinematic_map=None):
         """Σ m v_G (world axes)."""
-        masses, _ = self.inertias(p)
+        masses, _ = self.inertias(p, q.dtype)
         v, _ = self.body_velocities(t, q, u, p, kinematic_map)
         return jnp.sum(masses[:, None] * v, axis=0)
 
     def angular_momentum(self, t, q, u, p, kinematic_map=None):
         """Σ r_G × m v_G + R I ω: the angular momentum about the world origin (world axes)."""
-        masses, inertias = self.inertias(p)
+        masses, inertias = self.inertias(p, q.dtype)
         v, omega = self.body_velocities(t, q, u, p, kinematic_map)
         positions, rotations = self.body_poses(t, q, p)
         spin = jnp.einsum("nij,njk,nk->ni", rotations, inertias, omega)

@@ -76,12 +76,12 @@ class MultibodySystem(AbstractMultibody):
     def speeds_from_rates(self, t, q, qd, p):
         return qd
 
-    def inertias(self, p):
-        masses = jnp.stack([jnp.asarray(_value(b.mass, p)) for b in self.bodies])
-        zero = jnp.zeros((3, 3), masses.dtype)
-        inertias = jnp.stack([b._inertia(p) if isinstance(b, RigidBody) else zero
-                              for b in self.bodies])
-        return masses, inertias.astype(masses.dtype)
+    def inertias(self, p, dtype):
+        masses = jnp.stack([jnp.asarray(_value(b.mass, p), dtype) for b in self.bodies])
+        zero = jnp.zeros((3, 3), dtype)
+        inertias = jnp.stack([jnp.asarray(b._inertia(p), dtype) if isinstance(b, RigidBody)
+                              else zero for b in self.bodies])
+        return masses, inertias
 
     def body_velocities(self, t, q, u, p, kinematic_map=None):
         qd = self.coordinate_rates(t, q, u, p, kinematic_map)

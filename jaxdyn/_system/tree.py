@@ -438,8 +438,8 @@ class RigidBodyTree(AbstractMultibody):
                   for link in self.links if link.joint.nq]
         return jnp.concatenate(pieces) if pieces else jnp.zeros(0, qd.dtype)
 
-    def inertias(self, p):
-        masses, _, inertias = self.link_inertias(p)
+    def inertias(self, p, dtype):
+        masses, _, inertias = self.link_inertias(p, dtype)
         return masses, inertias
 
     def body_velocities(self, t, q, u, p, kinematic_map=None):
