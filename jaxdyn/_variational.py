@@ -64,8 +64,8 @@ class VariationalIntegrator(AbstractStructurePreserving):
 
     The first equation is solved for q_{k+1} by Newton's method (optimistix, differentiated
     through by the implicit function theorem); the speeds follow from the Legendre transform
-    ∂L/∂q̇(q_{k+1}, q̇_{k+1}) = p_{k+1}, solved the same way (one Newton step when T is quadratic
-    in q̇). Both rules are second order, symplectic and symmetric: over long horizons the energy
+    ∂L/∂q̇(q_{k+1}, q̇_{k+1}) = p_{k+1}: one Newton step, exact when T is quadratic in q̇, and
+    Newton's method otherwise. Both rules are second order, symplectic and symmetric: over long horizons the energy
     error of a conservative system oscillates without drift, and the momentum map of every
     symmetry of L (a cyclic coordinate's momentum, an angular momentum) is conserved to
     round-off. The trapezoidal rule is Störmer–Verlet where M is constant.
@@ -120,15 +120,16 @@ class VariationalIntegrator(AbstractStructurePreserving):
     def init(self, terms, t0, t1, y0, args):
         dynamics, p, _ = args
         q0, u0 = y0
-        return _momentum(dynamics, t0, q0, u0, p)
+        return _momentum(dynamics, t0, q0, u0, p), u0
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         dynamics, p, _ = args
         q0, u0 = y0
         h = t1 - t0
-        # The momentum p_k: carried from the last step (exact there), unless the state jumped.
-        momentum0 = jax.lax.cond(made_jump, lambda: _momentum(dynamics, t0, q0, u0, p),
-                                 lambda: solver_state)
+        # The momentum p_k: carried from the last step (exact there), unless the state jumped;
+        # with the previous step's speeds, for the initial guess below.
+        momentum0, previous = jax.lax.cond(
+            made_jump, lambda: (_momentum(dynamics, t0, q0, u0, p), u0), lambda: solver_state)
         newton = self._newton(q0.dtype)
 
         def forced(v):
@@ -148,26 +149,46 @@ class VariationalIntegrator(AbstractStructurePreserving):
         # p_k + D₁L_d + F_d^− = 0, solved for the mean velocity v = (q_{k+1} − q_k)/h rather
         # than q_{k+1}: v then carries its full precision, where (q_{k+1} − q_k)/h would
         # lose digits to cancellation (amplified by 1/h into the momenta) once |q| ≫ h |v|.
-        position = optx.root_find(lambda v, _: momentum0 + forced(v)[0], newton, u0,
+        # Initial guess: the speeds extrapolated to the middle of the step, u_k + (u_k −
+        # u_{k−1})/2, within O(h²) of v (one Newton iteration fewer than u_k alone).
+        guess = u0 + (u0 - previous) / 2
+        position = optx.root_find(lambda v, _: momentum0 + forced(v)[0], newton, guess,
                                   max_steps=self.max_newton_steps, throw=False)
         v = position.value
         q1 = q0 + h * v
         momentum1 = forced(v)[1]
-        speeds = optx.root_find(
-            lambda u1, _: _momentum(dynamics, t1, q1, u1, p) - momentum1, newton, v,
-            max_steps=self.max_newton_steps, throw=False)
-        u1 = speeds.value
+        u1, speeds_converged = self._speeds(dynamics, t1, q1, v, p, momentum1, newton)
         y1 = (q1, u1)
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(u1))
         # Non-finite equations (a singular mass matrix) are diagnosed by `simulate` from the
         # last regular state; a Newton iteration that merely did not converge is reported here.
-        converged = ((position.result == optx.RESULTS.successful)
-                     & (speeds.result == optx.RESULTS.successful))
+        converged = (position.result == optx.RESULTS.successful) & speeds_converged
         result = diffrax.RESULTS.where(converged | ~finite, diffrax.RESULTS.successful,
                                        diffrax.RESULTS.nonlinear_max_steps_reached)
         mean_rate = (u1 - u0) / h  # u linear between the steps' ends
         dense_info = _hermite(t0, t1, y0, y1, (u0, mean_rate), (u1, mean_rate))
-        return y1, None, dense_info, momentum1, result
+        return y1, None, dense_info, (momentum1, u0), result
+
+    def _speeds(self, dynamics, t, q, guess, p, momentum, newton):
+        """q̇ with ∂L/∂q̇(t, q, q̇) = p: one Newton step from `guess` (exact when T is quadratic
+        in q̇, as for every mechanical system: ∂L/∂q̇ is then affine in q̇ with the mass matrix
+        as its slope), then Newton's method only where that left a residual."""
+        def residual(speeds):
+            return _momentum(dynamics, t, q, speeds, p) - momentum
+
+        value, slope = jax.linearize(residual, guess)
+        mass_matrix = jax.vmap(slope)(jnp.eye(guess.shape[0], dtype=guess.dtype))
+        speeds = guess - jnp.linalg.solve(mass_matrix, value)
+        left = residual(speeds)
+        scale = newton.atol + newton.rtol * jnp.max(jnp.abs(momentum))
+        solved = jnp.max(jnp.abs(left)) <= scale
+
+        def iterate():
+            sol = optx.root_find(lambda x, _: residual(x), newton, speeds,
+                                 max_steps=self.max_newton_steps, throw=False)
+            return sol.value, sol.result == optx.RESULTS.successful
+
+        return jax.lax.cond(solved, lambda: (speeds, jnp.array(True)), iterate)
 
 
 class StormerVerlet(AbstractStructurePreserving):
