@@ -18,7 +18,8 @@ Run: python benchmarks/bench_stability.py            (about 6 minutes on 2 cores
    damper c): with k = 10⁸, c = 10⁵ the stiffness ratio is 3 × 10⁴ (explicit solvers still
    finish); with k = 10¹², c = 10⁷ it is 4 × 10⁶ (only implicit ones do; the explicit
    solvers' step estimate comes from the max_steps error). Error: the swing angle over 5 s
-   against a Kvaerno5 solve at rtol = atol = 1e-12.
+   against a Kvaerno5 solve at rtol = atol = 1e-10 (tighter ones run into the rounding
+   floor of the implicit step, near ε h ‖J‖).
 """
 
 import argparse
@@ -133,8 +134,8 @@ def run_stiff(args, rows):
         u0 = jnp.zeros(2)
         report = jaxdyn.stiffness(SPRING_PENDULUM, 0.0, q0, u0, p)
         reference = jaxdyn.simulate(SPRING_PENDULUM, q0, u0, p, t1=t1, ts=ts,
-                                    solver=diffrax.Kvaerno5(), rtol=1e-12, atol=1e-12,
-                                    max_steps=200_000)
+                                    solver=diffrax.Kvaerno5(), rtol=1e-10, atol=1e-10,
+                                    max_steps=2_000_000)
         print(f"\nstiff spring pendulum, {name}: jaxdyn.stiffness ratio {report.ratio:.3g}, "
               f"recommends {type(report.solver).__name__}")
         print(f"{'solver':<12}{'rtol':>8}{'steps':>12}{'run time':>12}{'error':>11}")
