@@ -65,10 +65,10 @@ class VariationalIntegrator(AbstractStructurePreserving):
     The first equation is solved for q_{k+1} by Newton's method (optimistix, differentiated
     through by the implicit function theorem); the speeds follow from the Legendre transform
     ∂L/∂q̇(q_{k+1}, q̇_{k+1}) = p_{k+1}: one Newton step, exact when T is quadratic in q̇, and
-    Newton's method otherwise. Both rules are second order, symplectic and symmetric: over long horizons the energy
-    error of a conservative system oscillates without drift, and the momentum map of every
-    symmetry of L (a cyclic coordinate's momentum, an angular momentum) is conserved to
-    round-off. The trapezoidal rule is Störmer–Verlet where M is constant.
+    Newton's method otherwise. Both rules are second order, symplectic and symmetric: over
+    long horizons the energy error of a conservative system oscillates without drift, and the
+    momentum map of every symmetry of L (a cyclic coordinate's momentum, an angular momentum)
+    is conserved to round-off. The trapezoidal rule is Störmer–Verlet where M is constant.
 
     Use it through `jaxdyn.simulate(lagrangian, ..., solver=VariationalIntegrator(), dt0=h)`:
     the steps are fixed (an error-controlled step would destroy the conservation). Saved values

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 import jaxdyn
 
@@ -399,3 +400,56 @@ def test_a_python_branch_on_traced_values_gets_a_hint():
     system = jaxdyn.Lagrangian(_kinetic, lambda q, p: q[0] if q[0] > 0 else -q[0])
     with pytest.raises(ValueError, match=r"jnp.where or jax.lax.cond"):
         jaxdyn.simulate(system, Q0, U0, {"m": 1.0}, t1=1.0)
+
+
+# Property-based: whatever tolerances or save times a user passes, simulate either solves or
+# answers with jaxdyn's own message, never a crash inside JAX or a silent NaN.
+
+_NUMBERS = st.one_of(st.floats(-1.0, 1.0), st.sampled_from([0.0, -0.0, 1e-300, float("nan"),
+                                                              float("inf"), -float("inf")]))
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(rtol=_NUMBERS, atol=_NUMBERS)
+def test_any_tolerances_solve_or_are_named(rtol, atol):
+    valid = (np.isfinite(rtol) and np.isfinite(atol) and rtol >= 0 and atol >= 0
+             and rtol + atol > 0)
+    if valid:
+        rtol, atol = max(rtol, 1e-12), max(atol, 1e-12)  # far below this is a budget question
+        sol = jaxdyn.simulate(PEND, Q0, U0, P, t1=0.5, rtol=rtol, atol=atol, max_steps=100_000)
+        assert np.all(np.isfinite(sol.q))
+    else:
+        with pytest.raises(ValueError, match=r"^(rtol|atol)"):
+            jaxdyn.simulate(PEND, Q0, U0, P, t1=0.5, rtol=rtol, atol=atol)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(ts=st.lists(st.floats(-2.0, 2.0), min_size=1, max_size=6), backwards=st.booleans())
+def test_any_save_times_solve_or_are_named(ts, backwards):
+    t1 = -1.0 if backwards else 1.0
+    ts = np.array(ts)
+    direction = np.sign(t1)
+    inside = np.all(ts * direction >= 0) and np.all(ts * direction <= 1.0)
+    ordered = np.all(np.diff(ts) * direction >= 0)
+    if inside and ordered:
+        sol = jaxdyn.simulate(PEND, Q0, U0, P, t1=t1, ts=ts)
+        reference = PENDULUM_BY_SCIPY(ts)
+        np.testing.assert_allclose(sol.q[:, 0], reference, atol=1e-8)
+    else:
+        with pytest.raises(RuntimeError, match=r"^ts must"):
+            jaxdyn.simulate(PEND, Q0, U0, P, t1=t1, ts=ts)
+
+
+def PENDULUM_BY_SCIPY(ts):
+    """θ(t) of the pendulum from (Q0, U0), by SciPy's DOP853 on θ̈ = −(g/l) sin θ."""
+    import scipy.integrate
+
+    g, length = P["g"], P["l"]
+    order = np.argsort(np.abs(ts))
+    end = ts[order][-1]
+    if end == 0.0:
+        return np.full(len(ts), Q0[0])
+    solution = scipy.integrate.solve_ivp(
+        lambda t, y: [y[1], -g / length * np.sin(y[0])], (0.0, end), [Q0[0], U0[0]],
+        method="DOP853", rtol=1e-12, atol=1e-12, dense_output=True)
+    return solution.sol(ts)[0]
