@@ -54,6 +54,11 @@ NEWTON = (
     "The implicit step's Newton iteration did not converge (the structure-preserving solver's "
     "`max_newton_steps`): the step is too long for the motion there. Take a smaller `dt0`."
 )
+DISTANT_ROOT = (
+    "The variational integrator's implicit step converged to a solution far from the motion "
+    "(the discrete Euler–Lagrange equations have other roots, which a step too long for the "
+    "motion reaches): take a smaller `dt0`, about a tenth of the fastest period or less."
+)
 
 
 def _vector_field(t, y, args):
@@ -111,7 +116,8 @@ def simulate(
     - `max_steps`: step budget; exhausting it is an error that estimates the steps the whole
       interval needs (or `RESULTS.max_steps_reached` with `throw=False`). Default: 16⁴ =
       65 536, or with fixed steps (concrete t0, t1, dt0) the number of steps the interval
-      takes, if that is more.
+      takes, if that is more (rounded up to a power of two, so that nearby intervals reuse
+      the compiled solve).
     - `adjoint`: how to differentiate. The default, diffrax's `RecursiveCheckpointAdjoint`,
       is reverse mode through the discrete solve (exactly what finite differences of the
       solve give) with about √(2 max_steps) checkpoints, a memory bound that also holds under
@@ -349,7 +355,10 @@ def _step_budget(max_steps, t0, t1, dt0, stepsize_controller):
     if fixed and dt0 is not None and _concrete((t0, t1, dt0)):
         span, step = abs(float(t1) - float(t0)), abs(float(dt0))
         if step > 0:
-            budget = max(budget, math.ceil(span / step * (1 + 1e-9)) + 1)
+            needed = math.ceil(span / step * (1 + 1e-9)) + 1
+            # Rounded up to a power of two: the budget is compiled in, and nearby intervals
+            # then reuse the compiled solve.
+            budget = max(budget, 2 ** math.ceil(math.log2(needed)))
     return budget
 
 
@@ -385,8 +394,8 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition):
         "mass matrix condition number (start, last)": jnp.stack(
             [condition(*start), condition(*last)])},
         failed=result == RESULTS.max_steps_reached)
-    ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON)],
-                  {"t": t_last})
+    ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON),
+                       (result == RESULTS.nonlinear_divergence, DISTANT_ROOT)], {"t": t_last})
     return error_if(ts, [(result == RESULTS._name_to_item[name],
                           RESULTS[RESULTS._name_to_item[name]])
                          for name in RESULTS._name_to_item if name not in _HANDLED])
@@ -405,6 +414,7 @@ _ILL_CONDITIONED = 1e8
 _EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
                       RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)
 _HANDLED = {"successful", "max_steps_reached", "nonlinear_max_steps_reached",
+            "nonlinear_divergence",
             "singular_mass_matrix", "singular_constraints", "nonfinite_forcing",
             "nonfinite_equations"}
 

@@ -72,7 +72,10 @@ class VariationalIntegrator(AbstractStructurePreserving):
 
     Use it through `jaxdyn.simulate(lagrangian, ..., solver=VariationalIntegrator(), dt0=h)`:
     the steps are fixed (an error-controlled step would destroy the conservation). Saved values
-    between steps are cubic Hermite in q (from q̇ at both ends) and linear in q̇.
+    between steps are cubic Hermite in q (from q̇ at both ends) and quadratic in q̇ (from u̇ at
+    the start). A step too long for the motion stops the solve with an error (Newton's method
+    did not converge, or converged to a root far from the motion) rather than continuing on a
+    wrong root.
 
     **Arguments:**
 
@@ -120,16 +123,17 @@ class VariationalIntegrator(AbstractStructurePreserving):
     def init(self, terms, t0, t1, y0, args):
         dynamics, p, _ = args
         q0, u0 = y0
-        return _momentum(dynamics, t0, q0, u0, p), u0
+        return _momentum(dynamics, t0, q0, u0, p)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        dynamics, p, _ = args
+        from ._dynamics import equations_of_motion
+
+        dynamics, p, factorisation = args
         q0, u0 = y0
         h = t1 - t0
-        # The momentum p_k: carried from the last step (exact there), unless the state jumped;
-        # with the previous step's speeds, for the initial guess below.
-        momentum0, previous = jax.lax.cond(
-            made_jump, lambda: (_momentum(dynamics, t0, q0, u0, p), u0), lambda: solver_state)
+        # The momentum p_k: carried from the last step (exact there), unless the state jumped.
+        momentum0 = jax.lax.cond(made_jump, lambda: _momentum(dynamics, t0, q0, u0, p),
+                                 lambda: solver_state)
         newton = self._newton(q0.dtype)
 
         def forced(v):
@@ -149,12 +153,18 @@ class VariationalIntegrator(AbstractStructurePreserving):
         # p_k + D₁L_d + F_d^− = 0, solved for the mean velocity v = (q_{k+1} − q_k)/h rather
         # than q_{k+1}: v then carries its full precision, where (q_{k+1} − q_k)/h would
         # lose digits to cancellation (amplified by 1/h into the momenta) once |q| ≫ h |v|.
-        # Initial guess: the speeds extrapolated to the middle of the step, u_k + (u_k −
-        # u_{k−1})/2, within O(h²) of v (one Newton iteration fewer than u_k alone).
-        guess = u0 + (u0 - previous) / 2
+        # Initial guess: the speeds at the middle of the step, u_k + h/2 u̇_k, within O(h²)
+        # of v. It also guards the root: the discrete equations have other roots far from the
+        # motion, which Newton's method can reach from a step too long for the motion; a root
+        # further from the guess than the guess is from u_k is not the motion's.
+        accelerations = equations_of_motion(dynamics, t0, q0, u0, p, factorisation)[1]
+        guess = u0 + h / 2 * accelerations
         position = optx.root_find(lambda v, _: momentum0 + forced(v)[0], newton, guess,
                                   max_steps=self.max_newton_steps, throw=False)
         v = position.value
+        slack = newton.atol + newton.rtol * jnp.max(jnp.abs(v))
+        nearby = (jnp.max(jnp.abs(v - guess))
+                  <= 0.5 * jnp.max(jnp.abs(guess - u0)) + 0.1 * jnp.max(jnp.abs(u0)) + slack)
         q1 = q0 + h * v
         momentum1 = forced(v)[1]
         u1, speeds_converged = self._speeds(dynamics, t1, q1, v, p, momentum1, newton)
@@ -165,9 +175,11 @@ class VariationalIntegrator(AbstractStructurePreserving):
         converged = (position.result == optx.RESULTS.successful) & speeds_converged
         result = diffrax.RESULTS.where(converged | ~finite, diffrax.RESULTS.successful,
                                        diffrax.RESULTS.nonlinear_max_steps_reached)
-        mean_rate = (u1 - u0) / h  # u linear between the steps' ends
-        dense_info = _hermite(t0, t1, y0, y1, (u0, mean_rate), (u1, mean_rate))
-        return y1, None, dense_info, (momentum1, u0), result
+        result = diffrax.RESULTS.where(nearby | ~finite, result,
+                                       diffrax.RESULTS.nonlinear_divergence)
+        dense_info = _hermite(t0, t1, y0, y1, (u0, accelerations),
+                              (u1, 2 * (u1 - u0) / h - accelerations))
+        return y1, None, dense_info, momentum1, result
 
     def _speeds(self, dynamics, t, q, guess, p, momentum, newton):
         """q̇ with ∂L/∂q̇(t, q, q̇) = p: one Newton step from `guess` (exact when T is quadratic

@@ -20,8 +20,8 @@ The properties, each against something independent of the code under test:
 4. The derivatives of a short simulation's final state with respect to the parameters
    (forward mode, and reverse mode through the default adjoint) match central finite
    differences.
-5. The variational integrator's energy error has no secular drift over thousands of steps and
-   is O(h²).
+5. The variational integrator's energy error stays bounded over tens of thousands of steps
+   (the two halves of a run alike) and is O(h²).
 
 Chains: θ_i is the absolute angle of rod i from the downward vertical (the hand-written
 Lagrangian and the particles), or the joint angle relative to the parent link (the tree, where
@@ -380,6 +380,8 @@ def _check_jacobian(jacobian, p, q0, u0, t1, adjoint):
 @hypothesis_settings(max_examples=5)
 @given(data=st.data())
 def test_forward_mode_gradient_matches_finite_differences(n, data):
+    """d(q(t₁), u(t₁))/d(m, l, g) by `jax.jacfwd` through a solve with diffrax's ForwardMode,
+    t₁ ∈ [0.3, 1] s."""
     p, q0, u0 = data.draw(point_mass_chains(n, angle=1.5, speed=2.0))
     t1 = data.draw(_floats(0.3, 1.0))
     adjoint = diffrax.ForwardMode()
@@ -411,6 +413,16 @@ INTERVALS = 1000  # saved times per run
 # halves of one run can differ by more than a drift would make them.
 AMPLITUDE = {1: 2.0, 2: 0.6, 3: 0.3, 4: 0.3}
 
+# Bounds on max |E − E₀| over the second half of a run / over the first half (and on its
+# inverse), from the ratios measured over 200–300 drawn chains of each length. A pendulum's
+# error is periodic (ratio 1) and the double pendulum's two modes mix within a run (0.86–1.17
+# measured): 1.5, below the 2 of a dominant drift. Chains of three and four links can have
+# two modes of nearly equal frequency that exchange energy over hundreds of seconds (with
+# step-dependent frequencies: a numerical near-resonance), so that the error's envelope rises
+# and falls over a run (up to 2.0 and 4.2 measured; it falls back over longer runs): bounds
+# 1.5 times those.
+GROWTH = {1: 1.5, 2: 1.5, 3: 3.0, 4: 6.0}
+
 
 def _variational_energy_error(p, q0, u0, t1, h):
     """E − E₀ at INTERVALS + 1 evenly spaced times, from a run of the variational integrator
@@ -436,9 +448,9 @@ def test_variational_integrator_energy_is_bounded_and_second_order(n, data):
     and h ω ≤ 0.15 for the fastest mode ω of small oscillations (`linear_frequencies`).
 
     - Bounded, no secular growth: the largest |E − E₀| over the second half of the run is
-      that over the first within a factor 2.5 either way (measured: 0.5–1.8). The error
-      oscillates about a level set by the state; over finite runs of multi-mode chains the
-      two halves sample that oscillation unevenly, so the factor cannot be close to 1.
+      that over the first within a factor `GROWTH[n]` either way. A drift E − E₀ ∝ t that
+      dominates the oscillation makes the ratio 2: caught for N ≤ 2 (factor 1.5); for
+      N = 3, 4 the bound catches faster growth only (see `GROWTH`).
     - Second order: halving h divides the error by 4: the RMS of E − E₀ over the first
       1000 steps, 3.5–4.5 (3.8–4.3 measured; the RMS is insensitive to the phase by which
       the two runs drift apart, which the maximum is not).
@@ -455,7 +467,7 @@ def test_variational_integrator_energy_is_bounded_and_second_order(n, data):
     assert np.max(error) <= (h * fastest) ** 2 * energy_scale(q0, u0, p)
     half = INTERVALS // 2
     halves = np.max(error[half:]) / np.max(error[: half + 1])
-    assert 1 / 2.5 <= halves <= 2.5, halves
+    assert 1 / GROWTH[n] <= halves <= GROWTH[n], halves
     window = INTERVALS * h
     order = (_rms(_variational_energy_error(p, q0, u0, window, h))
              / _rms(_variational_energy_error(p, q0, u0, window, h / 2)))
