@@ -20,7 +20,7 @@ from ._linalg import factorise
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
 from ._form.constraints import Constrained
 from ._solution import RESULTS, ConstraintRecord, Solution
-from ._state import check_vector, numbers_as_arrays, state_dtype
+from ._state import check_parameter_dtypes, check_vector, numbers_as_arrays, state_dtype
 from ._variational import AbstractStructurePreserving
 
 MAX_STEPS = (
@@ -179,7 +179,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
             f"{type(dynamics).__name__}."
         )
     dtype = q0.dtype
-    _check_parameter_dtypes(p, dtype)
+    check_parameter_dtypes(p, dtype)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
@@ -250,7 +250,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
     if throw:
         condition = functools.partial(_condition, dynamics, p)
         ts_out = _raise_failures(ts_out, result, failure, (t0, q0, u0), t1,
-                                 (t_last, q_last[0], u_last[0]), max_steps, condition)
+                                 (t_last, q_last[0], u_last[0]), max_steps, condition,
+                                 isinstance(solver, AbstractStructurePreserving))
     qd = None
     if "qd" in save:
         qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
@@ -362,7 +363,8 @@ def _step_budget(max_steps, t0, t1, dt0, stepsize_controller):
     return budget
 
 
-def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition):
+def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
+                    structure_preserving):
     """`ts`, or an error whose first line is jaxdyn's account of why the solve failed.
 
     Where the mass matrix is singular at the failure but regular at the start, or the solve
@@ -394,11 +396,15 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition):
         "mass matrix condition number (start, last)": jnp.stack(
             [condition(*start), condition(*last)])},
         failed=result == RESULTS.max_steps_reached)
-    ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON),
-                       (result == RESULTS.nonlinear_divergence, DISTANT_ROOT)], {"t": t_last})
+    handled = set(_HANDLED)
+    if structure_preserving:  # the codes of its implicit step (`jaxdyn.VariationalIntegrator`)
+        ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON),
+                           (result == RESULTS.nonlinear_divergence, DISTANT_ROOT)],
+                      {"t": t_last})
+        handled |= {"nonlinear_max_steps_reached", "nonlinear_divergence"}
     return error_if(ts, [(result == RESULTS._name_to_item[name],
                           RESULTS[RESULTS._name_to_item[name]])
-                         for name in RESULTS._name_to_item if name not in _HANDLED])
+                         for name in RESULTS._name_to_item if name not in handled])
 
 
 def _condition(dynamics, p, t, q, u):
@@ -413,25 +419,9 @@ _ILL_CONDITIONED = 1e8
 
 _EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
                       RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)
-_HANDLED = {"successful", "max_steps_reached", "nonlinear_max_steps_reached",
-            "nonlinear_divergence",
+_HANDLED = {"successful", "max_steps_reached",
             "singular_mass_matrix", "singular_constraints", "nonfinite_forcing",
             "nonfinite_equations"}
-
-
-def _check_parameter_dtypes(p, dtype):
-    """Parameters share the state's real floating dtype: mixed precision would either be
-    promoted silently (float32 work done in float64, or the reverse) or fail deep inside."""
-    for path, leaf in jax.tree_util.tree_leaves_with_path(p):
-        if not eqx.is_inexact_array(leaf) or leaf.dtype == dtype:
-            continue
-        where = f"p{jax.tree_util.keystr(path)}"
-        if jnp.issubdtype(leaf.dtype, jnp.complexfloating):
-            raise ValueError(f"{where} is complex ({leaf.dtype}): parameters must be real.")
-        raise ValueError(
-            f"{where} has dtype {leaf.dtype} but the state (q0, u0) is {dtype}: mixed "
-            "precision is not accepted. Cast the parameters to the state's dtype, e.g. "
-            f"jax.tree.map(lambda x: x.astype(jnp.{dtype}), p), or the state to theirs.")
 
 
 def _finite_stand_in(q0, u0, p):

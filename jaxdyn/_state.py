@@ -89,6 +89,21 @@ def _split(inputs: str) -> list[str]:
     return ["(" + part.strip("(),") + ")" for part in inputs.split(")") if part.strip(",")]
 
 
+def check_parameter_dtypes(p, dtype):
+    """Parameters share the state's real floating dtype: mixed precision would either be
+    promoted silently (float32 work done in float64, or the reverse) or fail deep inside."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(p):
+        if not eqx.is_inexact_array(leaf) or leaf.dtype == dtype:
+            continue
+        where = f"p{jax.tree_util.keystr(path)}"
+        if jnp.issubdtype(leaf.dtype, jnp.complexfloating):
+            raise ValueError(f"{where} is complex ({leaf.dtype}): parameters must be real.")
+        raise ValueError(
+            f"{where} has dtype {leaf.dtype} but the state is {dtype}: mixed "
+            "precision is not accepted. Cast the parameters to the state's dtype, e.g. "
+            f"jax.tree.map(lambda x: x.astype(jnp.{dtype}), p), or the state to theirs.")
+
+
 def numbers_as_arrays(tree, dtype=None):
     """Python floats and ints in `tree` as (NumPy) arrays, so that they are traced rather than
     compiled in: a new parameter value, time or tolerance then reuses the compiled program.
@@ -139,7 +154,10 @@ def public_method(signature: str):
         def wrapper(self, *args, **kwargs):
             options = {k: v for k, v in kwargs.items() if k != "p"}
             args = _positional(method.__name__, broadcast.names, args, kwargs)
-            return compiled(self, *numbers_as_arrays(args, state_dtype(*args[1:])), **options)
+            dtype = state_dtype(*args[1:])
+            if len(args) > len(broadcast.names):
+                check_parameter_dtypes(args[-1], dtype)
+            return compiled(self, *numbers_as_arrays(args, dtype), **options)
 
         return reports_state(wrapper)
 

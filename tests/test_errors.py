@@ -372,10 +372,12 @@ def test_max_steps_error_estimates_the_steps_needed():
 
 
 def test_mixed_precision_and_complex_parameters_are_rejected():
-    with pytest.raises(ValueError, match=r"p\['m'\] has dtype float64 but the state \(q0, u0\) "
-                                         r"is float32"):
-        jaxdyn.simulate(PEND, Q0.astype(np.float32), U0.astype(np.float32),
-                        {**P, "m": np.array(1.0, np.float64)}, t1=1.0)
+    mixed = r"^p\['m'\] has dtype float64 but the state is float32: mixed precision"
+    q32, u32 = Q0.astype(np.float32), U0.astype(np.float32)
+    with pytest.raises(ValueError, match=mixed):
+        jaxdyn.simulate(PEND, q32, u32, {**P, "m": np.array(1.0, np.float64)}, t1=1.0)
+    with pytest.raises(ValueError, match=mixed):  # the methods on states too
+        PEND.accelerations(0.0, q32, u32, {**P, "m": np.array(1.0, np.float64)})
     with pytest.raises(ValueError, match=r"p\['m'\] is complex"):
         jaxdyn.simulate(PEND, Q0, U0, {**P, "m": np.array(1.0, np.complex128)}, t1=1.0)
 
