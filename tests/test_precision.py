@@ -61,6 +61,7 @@ def test_public_methods_compute_in_the_states_dtype(name, dynamics, p, q0, u0):
         np.testing.assert_allclose(value, reference, rtol=1e-4, atol=1e-4, err_msg=method)
 
 
+@pytest.mark.slow
 def test_float32_structure_preserving_steppers():
     """The variational integrator's Newton tolerance follows the dtype (√ε): in float32 the
     energy error stays bounded over 10⁴ steps, at the size the step gives in float64."""
