@@ -40,6 +40,9 @@ from hypothesis import strategies as st
 
 import jaxdyn
 
+# Stress tests: the whole module is in the slow set (python -m pytest -m slow).
+pytestmark = pytest.mark.slow
+
 from helpers import central_difference
 
 
@@ -253,11 +256,12 @@ def rigid_link_chains(draw, n):
 # ---------------------------------------------------------------------------------------------
 
 SAVES = 61  # one shape of `ts` for both tests: they share the compiled solve
+# Chains of 1 to 4 links; three in the default run, all with `-m slow`.
+LENGTHS = [pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow), 3,
+           pytest.param(4, marks=pytest.mark.slow)]
 
 
-@pytest.mark.parametrize("n", [pytest.param(1, marks=pytest.mark.slow),
-                               pytest.param(2, marks=pytest.mark.slow), 3,
-                               pytest.param(4, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n", LENGTHS)
 @hypothesis_settings(max_examples=8)
 @given(data=st.data())
 def test_energy_is_conserved(n, data):
@@ -273,9 +277,7 @@ def test_energy_is_conserved(n, data):
     assert error <= 1e-7 * scale, (error / scale, int(sol.num_steps))
 
 
-@pytest.mark.parametrize("n", [pytest.param(1, marks=pytest.mark.slow),
-                               pytest.param(2, marks=pytest.mark.slow), 3,
-                               pytest.param(4, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n", LENGTHS)
 @hypothesis_settings(max_examples=8)
 @given(data=st.data())
 def test_time_reversible(n, data):
