@@ -14,6 +14,7 @@ from ._linalg import (
     NONFINITE_FORCING,
     SINGULAR_CONSTRAINTS,
     SINGULAR_MASS_MATRIX,
+    condition_number,
     solve,
     solve_mass_matrix,
 )
@@ -100,8 +101,7 @@ class AbstractDynamics(eqx.Module):
         near 1/ε it is numerically singular, and a growing κ along a trajectory announces a
         coordinate singularity (Euler angles near gimbal lock, polar angles near the pole).
         Infinite where M has a zero or negative eigenvalue."""
-        eigenvalues = jnp.linalg.eigvalsh(self.mass_matrix(t, q, u, p))
-        return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)
+        return condition_number(self.mass_matrix(t, q, u, p))
 
     @public_method("(),(n),(m)->(m)")
     def forcing(self, t, q, u, p=None):

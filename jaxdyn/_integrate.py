@@ -16,7 +16,7 @@ from ._dynamics import (
     evaluated_as_arrays,
     mass_matrix_blocks,
 )
-from ._linalg import factorise
+from ._linalg import condition_number, factorise
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
 from ._form.constraints import Constrained
 from ._solution import RESULTS, ConstraintRecord, Solution
@@ -409,9 +409,7 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
 
 def _condition(dynamics, p, t, q, u):
     """κ(M) at one state, from its eigenvalues (∞ where M is not positive definite)."""
-    mass_matrix = jax.lax.stop_gradient(dynamics.form_equations(t, q, u, p)[0])
-    eigenvalues = jnp.linalg.eigvalsh(mass_matrix)
-    return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)
+    return condition_number(jax.lax.stop_gradient(dynamics.form_equations(t, q, u, p)[0]))
 
 
 # A mass matrix this ill-conditioned loses half the digits of the accelerations.

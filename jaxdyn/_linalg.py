@@ -163,3 +163,10 @@ def ldl_solve(lower, reciprocals, rhs):
         x[i] = (y[i] * reciprocals[..., i]
                 - sum(lower[k][i] * x[k] for k in range(i + 1, m)))
     return jnp.stack(x, axis=-1)
+
+
+def condition_number(mass_matrix):
+    """κ(M) = λ_max / λ_min of a symmetric matrix, from its eigenvalues; ∞ where M is not
+    positive definite."""
+    eigenvalues = jnp.linalg.eigvalsh(mass_matrix)
+    return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)

@@ -148,16 +148,15 @@ def public_method(signature: str):
 
         @eqx.filter_jit
         def compiled(self, *args, **options):
+            if len(args) > len(broadcast.names):  # dtypes are static: checked when traced
+                check_parameter_dtypes(args[-1], state_dtype(*args[1:]))
             return broadcast(self, *args, **options)
 
         @functools.wraps(method)
         def wrapper(self, *args, **kwargs):
             options = {k: v for k, v in kwargs.items() if k != "p"}
             args = _positional(method.__name__, broadcast.names, args, kwargs)
-            dtype = state_dtype(*args[1:])
-            if len(args) > len(broadcast.names):
-                check_parameter_dtypes(args[-1], dtype)
-            return compiled(self, *numbers_as_arrays(args, dtype), **options)
+            return compiled(self, *numbers_as_arrays(args, state_dtype(*args[1:])), **options)
 
         return reports_state(wrapper)
 
