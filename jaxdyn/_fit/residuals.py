@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from .._dynamics import AbstractDynamics
 from .._integrate import simulate
@@ -44,6 +45,10 @@ def _shape_key(experiment: Experiment):
             experiment.u0.shape, treedef, tuple(np.shape(x) for x in leaves))
 
 
+def _as_data(x, dtype):
+    return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
+
+
 def group_experiments(experiments, dtype) -> tuple[ExperimentGroup, ...]:
     """Group experiments by shape, in order of first appearance."""
     keys = {}
@@ -58,8 +63,11 @@ def group_experiments(experiments, dtype) -> tuple[ExperimentGroup, ...]:
 
         inputs = None
         if members[0].inputs is not None:
-            inputs = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
-                                            *[e.inputs for e in members])
+            # Measured inputs are data: floating ones take the fit's precision, as the
+            # observations do.
+            inputs = jax.tree_util.tree_map(
+                lambda *xs: _as_data(jnp.stack([jnp.asarray(x) for x in xs]), dtype),
+                *[e.inputs for e in members])
         groups.append(ExperimentGroup(
             indices=tuple(indices),
             ts=stack(lambda e: e.ts),
@@ -194,6 +202,38 @@ def least_squares_residuals(z, problem: TrajectoryMatching):
     """r(z) for a least-squares solver, with ½‖r_observations‖² as auxiliary output."""
     residuals, observation = problem.residuals(z)
     return residuals, 0.5 * jnp.sum(observation**2)
+
+
+def least_squares_residuals_forward(z, problem: TrajectoryMatching):
+    """`least_squares_residuals` whose derivative is the Jacobian J = ∂r/∂z, formed once
+    by forward mode (one batched pass with a column per unknown) and then applied as a
+    matrix. A least-squares solver linearises r once per step and applies the linear map
+    several times (to form and solve the damped Gauss–Newton system, for the predicted
+    reduction, transposed for Jᵀr); each application of the lazily linearised simulation
+    would cost about a pass of the tangent simulation, each application of J a matrix
+    product."""
+    flat, unravel = ravel_pytree(z)
+    residuals, observation = _materialised(problem, flat, unravel)
+    return residuals, 0.5 * jnp.sum(observation**2)
+
+
+def _materialised(problem, flat, unravel):
+    num_observation = sum(g.observations.size for g in problem.groups)
+
+    @jax.custom_jvp
+    def residuals(f):
+        return problem.residuals(unravel(f))
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        (f,), (df,) = primals, tangents
+        jacobian, (r, observation) = jax.jacfwd(
+            lambda f: (lambda out: (out[0], out))(problem.residuals(unravel(f))),
+            has_aux=True)(f)
+        dr = jacobian @ df
+        return (r, observation), (dr, dr[:num_observation])
+
+    return residuals(flat)
 
 
 def scalar_loss(z, problem: TrajectoryMatching):
