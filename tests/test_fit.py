@@ -334,6 +334,7 @@ def test_parameter_without_effect_is_named():
     assert np.isfinite(result.standard_errors["l"])
 
 
+@pytest.mark.slow  # a long fit (half a minute or more on two cores)
 def test_chaotic_horizon_needs_multiple_shooting():
     """Eight seconds of a chaotic double pendulum: a single simulation from the initial state
     is so sensitive to the parameters that Levenberg–Marquardt stalls in a local minimum far
@@ -389,6 +390,7 @@ def test_inertia_parametrisation_is_physical_for_every_latent_value():
         inertia.to_latent(jnp.diag(jnp.array([1.0, 1.0, 3.0])), "p['I']")
 
 
+@pytest.mark.slow  # a long fit (half a minute or more on two cores)
 def test_inertia_tensor_fitted_from_gyro_data_stays_physical():
     """A heavy top on a ball joint (mass and centre of mass known) measured by a gyroscope
     (body angular velocity): the full inertia tensor is fitted, and every iterate is a

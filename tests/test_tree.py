@@ -86,8 +86,11 @@ def _pinocchio_case(name, floating, num_states=3, seed=0):
                 accelerations=np.stack(accelerations), permutation=permutation)
 
 
-# The 50-joint humanoid is a stress test (about half a minute): `python -m pytest -m slow`.
-ROBOTS = [("panda.urdf", False), ("solo12.urdf", True),
+# The default run checks the Panda (a fixed base); the floating-base quadruped and the 50-joint
+# humanoid compile for longer (40 s and more on two cores): `python -m pytest -m slow`. A
+# floating base is checked by default too, against its closed form (planar joint in free fall).
+ROBOTS = [("panda.urdf", False),
+          pytest.param("solo12.urdf", True, marks=pytest.mark.slow),
           pytest.param("talos_full_v2.urdf", True, marks=pytest.mark.slow)]
 
 
