@@ -499,8 +499,8 @@ def test_rolling_disc_as_pfaffian_constraints_matches_sympy_kanes_method():
 
 def test_forward_mode_through_a_projected_solve():
     """diffrax's ForwardMode adjoint through the projection-wrapped solver: the derivative of
-    a bead's position on a circle of radius l with respect to l, against reverse mode and a
-    central difference."""
+    a bead's position on a circle of radius l with respect to l, against a central difference
+    (reverse mode through the projection: test_gradient_through_a_constrained_simulation_…)."""
     def kinetic(q, qd, p):
         return 0.5 * qd @ qd
 
@@ -517,8 +517,6 @@ def test_forward_mode_through_a_projected_solve():
                                adjoint=adjoint).q[-1]
 
     forward = jax.jacfwd(lambda l: end(l, diffrax.ForwardMode()))(1.0)
-    reverse = jax.jacrev(lambda l: end(l, diffrax.RecursiveCheckpointAdjoint()))(1.0)
     h = 1e-6
     central = (end(1.0 + h, diffrax.ForwardMode()) - end(1.0 - h, diffrax.ForwardMode())) / (2 * h)
-    np.testing.assert_allclose(forward, reverse, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(forward, central, rtol=1e-6, atol=1e-8)
