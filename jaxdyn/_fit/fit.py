@@ -223,16 +223,16 @@ def fit(
                              f"{e.ts.shape[0] - 1} must be divisible by the "
                              f"{shooting.segments} shooting segments.")
     least_squares, solver = _solver(optimiser, rtol, atol)
+    dtype = fit_dtype(params)
     if identifiability_tolerance is None:
-        identifiability_tolerance = (1e-7 if jnp.finfo(fit_dtype(params)).bits == 64
-                                     else 1e-4)
+        identifiability_tolerance = 1e-7 if jnp.finfo(dtype).bits == 64 else 1e-4
     if adjoint is None:
         adjoint = (diffrax.ForwardMode() if least_squares
                    else diffrax.RecursiveCheckpointAdjoint())
     options = {"jac": "fwd" if isinstance(adjoint, diffrax.ForwardMode) else "bwd"}
-    problem, latent = _problem(dynamics, experiments, params, filter_spec, parametrisation,
-                               observe, fit_initial_states, shooting, simulate_options,
-                               adjoint)
+    problem, latent = _problem(dynamics, experiments, params, dtype, filter_spec,
+                               parametrisation, observe, fit_initial_states, shooting,
+                               simulate_options, adjoint)
     fn = scalar_loss
     if least_squares:
         fn = (least_squares_residuals_forward if options["jac"] == "fwd"
@@ -305,10 +305,10 @@ def _solver(optimiser, rtol, atol):
                      f"{type(optimiser).__name__}.")
 
 
-def _problem(dynamics, experiments, params, filter_spec, parametrisation, observe,
+def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation, observe,
              fit_initial_states, shooting, simulate_options, adjoint):
-    """The `TrajectoryMatching` problem and the latent starting point."""
-    dtype = fit_dtype(params)
+    """The `TrajectoryMatching` problem (in precision `dtype`) and the latent starting
+    point."""
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)
                                     if isinstance(x, float) else x, params)
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
@@ -459,12 +459,7 @@ def _compiled_step_for(solver_static, fn):
 
 def _compiled_step(solver, fn):
     arrays, static = eqx.partition(solver, eqx.is_array)
-    try:
-        step = _compiled_step_for(static, fn)
-    except TypeError:  # a solver with an unhashable static part: jit per call
-        step = eqx.filter_jit(lambda arrays, *args: _step(eqx.combine(arrays, static), fn,
-                                                          *args))
-    return functools.partial(step, arrays)
+    return functools.partial(_compiled_step_for(static, fn), arrays)
 
 
 def _terminated(solver, fn, latent, problem, options, state):

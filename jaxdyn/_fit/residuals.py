@@ -218,20 +218,23 @@ def least_squares_residuals_forward(z, problem: TrajectoryMatching):
 
 
 def _materialised(problem, flat, unravel):
-    num_observation = sum(g.observations.size for g in problem.groups)
+    """(r, r_obs) at the flat latent vector, differentiated through the whole Jacobian."""
 
     @jax.custom_jvp
     def residuals(f):
         return problem.residuals(unravel(f))
 
+    def r_with_values(f):  # r to differentiate, and both outputs' values from the same pass
+        r, observation = problem.residuals(unravel(f))
+        return r, (r, observation)
+
     @residuals.defjvp
     def residuals_jvp(primals, tangents):
         (f,), (df,) = primals, tangents
-        jacobian, (r, observation) = jax.jacfwd(
-            lambda f: (lambda out: (out[0], out))(problem.residuals(unravel(f))),
-            has_aux=True)(f)
+        jacobian, (r, observation) = jax.jacfwd(r_with_values, has_aux=True)(f)
         dr = jacobian @ df
-        return (r, observation), (dr, dr[:num_observation])
+        # r_obs is the leading block of r: its tangent is the leading block of dr.
+        return (r, observation), (dr, dr[:observation.size])
 
     return residuals(flat)
 
