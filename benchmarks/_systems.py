@@ -59,6 +59,45 @@ def double_pendulum_hand(t, q, qd, p):
     return jnp.stack([a1, a2])
 
 
+def double_pendulum_fastest(t, q, qd, p):
+    """The fastest closed form known (the floor of bench_default_paths.py): s = sin(θ₁ − θ₂),
+    c = cos(θ₁ − θ₂), den = m₁ + m₂ s², four trigonometric calls and two divisions."""
+    m1, m2, l1, l2, g = p["m1"], p["m2"], p["l1"], p["l2"], p["g"]
+    d = q[0] - q[1]
+    s, c = jnp.sin(d), jnp.cos(d)
+    den = m1 + m2 * s * s
+    s1, s2 = jnp.sin(q[0]), jnp.sin(q[1])
+    a1 = (m2 * g * s2 * c - m2 * s * (l1 * qd[0] ** 2 * c + l2 * qd[1] ** 2)
+          - (m1 + m2) * g * s1) / (l1 * den)
+    a2 = ((m1 + m2) * (l1 * qd[0] ** 2 * s - g * s2 + g * s1 * c)
+          + m2 * l2 * qd[1] ** 2 * s * c) / (l2 * den)
+    return jnp.stack([a1, a2])
+
+
+def double_pendulum_T_scalar(q, qd, p):
+    """T as the textbook writes it: ½(m₁ + m₂)l₁²θ̇₁² + ½m₂l₂²θ̇₂² + m₂l₁l₂θ̇₁θ̇₂ cos(θ₁ − θ₂)."""
+    return (0.5 * (p["m1"] + p["m2"]) * (p["l1"] * qd[0]) ** 2
+            + 0.5 * p["m2"] * (p["l2"] * qd[1]) ** 2
+            + p["m2"] * p["l1"] * p["l2"] * qd[0] * qd[1] * jnp.cos(q[0] - q[1]))
+
+
+def _rotation(angle):
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
+
+
+def _double_pendulum_positions(q, p):
+    down = jnp.array([0.0, -1.0])
+    r1 = p["l1"] * _rotation(q[0]) @ down
+    return r1, r1 + p["l2"] * _rotation(q[1]) @ down
+
+
+def double_pendulum_T_rotations(q, qd, p):
+    """T from positions built with rotation matrices, velocities by a JVP of the positions."""
+    v1, v2 = jax.jvp(lambda q: _double_pendulum_positions(q, p), (q,), (qd,))[1]
+    return 0.5 * (p["m1"] * v1 @ v1 + p["m2"] * v2 @ v2)
+
+
 def double_pendulum_equations(t, q, qd, p):
     m1, m2, l1, l2, g = p["m1"], p["m2"], p["l1"], p["l2"], p["g"]
     d = q[0] - q[1]

@@ -75,6 +75,16 @@ class AbstractDynamics(eqx.Module):
         than the mass matrix (only constrained formulations have constraints)."""
         return jnp.zeros((), bool)
 
+    def saved_records(self) -> tuple[str, ...]:
+        """The quantities beyond q, u and q̇ that `simulate(..., save=...)` can record along
+        a trajectory of this formulation, by name (`Constrained`: "constraints")."""
+        return ()
+
+    def record(self, name: str, ts, q, u, p=None):
+        """The quantity `name` (one of `saved_records()`) at stacked states (ts, q, u), for
+        the field of `jaxdyn.Solution` of that name."""
+        raise ValueError(f"{type(self).__name__} records nothing named {name!r}.")
+
     def __hash__(self):
         # By structure (callbacks, static fields, array shapes), so that a bound method such
         # as `jax.jit(system.accelerations)` can be hashed although the system holds arrays;

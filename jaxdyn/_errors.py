@@ -135,7 +135,8 @@ def _block(tree):
     leaves = jax.tree_util.tree_leaves(tree)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return tree
-    return jax.block_until_ready(tree)
+    jax.block_until_ready(leaves)
+    return tree
 
 
 def check_static_indexing(fn, *args):

@@ -1,5 +1,7 @@
 """The result of `simulate`."""
 
+from typing import Any
+
 import diffrax
 import equinox as eqx
 from jaxtyping import Array, Float, Int
@@ -70,9 +72,10 @@ class Solution(eqx.Module):
     num_rejected_steps: Int[Array, ""]
     dense: diffrax.Solution | None = None
     constraints: ConstraintRecord | None = None
+    layout: Any = None  # how `dense` holds (q, u): `layout.split(y)` gives them
 
     def evaluate(self, t):
         """(q(t), u(t)) from the solver's dense interpolant (needs `dense=True`)."""
         if self.dense is None:
             raise ValueError("evaluate needs a dense solution: call simulate(..., dense=True).")
-        return self.dense.evaluate(t)
+        return self.layout.split(self.dense.evaluate(t))

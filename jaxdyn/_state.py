@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import filter_jit
 from ._errors import reports_state
 
 
@@ -146,17 +147,17 @@ def public_method(signature: str):
     def decorator(method):
         broadcast = over_states(signature)(method)
 
-        @eqx.filter_jit
-        def compiled(self, *args, **options):
+        @filter_jit
+        def compiled(self, args, options):
             if len(args) > len(broadcast.names):  # dtypes are static: checked when traced
                 check_parameter_dtypes(args[-1], state_dtype(*args[1:]))
-            return broadcast(self, *args, **options)
+            return broadcast(self, *args, **dict(options))
 
         @functools.wraps(method)
         def wrapper(self, *args, **kwargs):
-            options = {k: v for k, v in kwargs.items() if k != "p"}
+            options = tuple((k, v) for k, v in kwargs.items() if k != "p")
             args = _positional(method.__name__, broadcast.names, args, kwargs)
-            return compiled(self, *numbers_as_arrays(args, state_dtype(*args[1:])), **options)
+            return compiled(self, numbers_as_arrays(args, state_dtype(*args[1:])), options)
 
         return reports_state(wrapper)
 

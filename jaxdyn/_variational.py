@@ -121,14 +121,14 @@ class VariationalIntegrator(AbstractStructurePreserving):
         return optx.Newton(rtol=rtol, atol=atol)
 
     def init(self, terms, t0, t1, y0, args):
-        dynamics, p, _ = args
+        dynamics, p, _, _ = args
         q0, u0 = y0
         return _momentum(dynamics, t0, q0, u0, p)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         from ._dynamics import equations_of_motion
 
-        dynamics, p, factorisation = args
+        dynamics, p, factorisation, _ = args
         q0, u0 = y0
         h = t1 - t0
         # The momentum p_k: carried from the last step (exact there), unless the state jumped.
@@ -250,12 +250,12 @@ class StormerVerlet(AbstractStructurePreserving):
     def _accelerations(t, y, args):
         from ._dynamics import equations_of_motion
 
-        dynamics, p, factorisation = args
+        dynamics, p, factorisation, _ = args
         q, u = y
         return equations_of_motion(dynamics, t, q, u, p, factorisation)[1]
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        dynamics, p, _ = args
+        dynamics, p, _, _ = args
         q0, u0 = y0
         h = t1 - t0
         a0 = jax.lax.cond(made_jump, lambda: self._accelerations(t0, y0, args),

@@ -13,6 +13,7 @@ from .._convention import CONFIGURATION_ARGS, call, vector
 from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._errors import error_if
 from .._linalg import factorise, solve
+from .._solution import ConstraintRecord
 from .._state import check_vector, public_method
 
 NOT_ON_CONSTRAINTS = (
@@ -269,6 +270,15 @@ class Constrained(AbstractDynamics):
 
     def state_projection(self):
         return self.project if isinstance(self.stabilisation, Projection) else None
+
+    def saved_records(self):
+        return ("constraints",)
+
+    def record(self, name, ts, q, u, p=None):  # name: "constraints", the only record
+        return ConstraintRecord(multipliers=self.multipliers(ts, q, u, p),
+                                constraint_forces=self.constraint_forces(ts, q, u, p),
+                                position_violation=self.position_violation(ts, q, u, p),
+                                velocity_violation=self.velocity_violation(ts, q, u, p))
 
     # -- constraint quantities ------------------------------------------------------------------
 

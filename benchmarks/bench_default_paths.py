@@ -1,0 +1,266 @@
+"""The paths users call, with default options, against the fastest hand-written floor.
+
+Run: python benchmarks/bench_default_paths.py            (about 6 minutes on two cores)
+     python benchmarks/bench_default_paths.py --quick    (fewer rounds, no 16384 batch)
+     python benchmarks/bench_default_paths.py --check    (exit 1 when a ratio misses its target)
+
+Every row times what a user calls (un-jitted where the README calls it so, default `save` and
+`throw`) side by side in one process with its floor, and prints the ratio and its target:
+
+- the floor of the double pendulum is the fastest closed form known,
+  `_systems.double_pendulum_fastest` (s = sin(θ₁ − θ₂), c = cos(θ₁ − θ₂), den = m₁ + m₂ s²);
+  of the elastic pendulum its closed form; of the chain of 10 rods M = a cos(θᵢ − θⱼ) + …
+  with a Cholesky solve (`_systems.py`);
+- a trajectory's floor is `jax.jit` of `diffrax.diffeqsolve` on that closed form with the state
+  as one vector y = [q; q̇] (the faster layout: a pair (q, q̇) costs 1.4–2.8× more per step), the
+  same solver (Tsit5), tolerances (rtol = atol = 1e-8), PID controller and saving (the final
+  state);
+- jaxdyn is given T and V as a user writes them; for batches, T written three ways (scalar
+  expressions, vectors and dot products, rotation matrices with a JVP).
+"""
+
+import argparse
+import os
+import statistics
+import sys
+import time
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+import jaxdyn  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _systems import (  # noqa: E402
+    CHAIN_PARAMS,
+    DOUBLE_PENDULUM_PARAMS,
+    ELASTIC_PARAMS,
+    chain_hand,
+    chain_T,
+    chain_V,
+    double_pendulum_fastest,
+    double_pendulum_T,
+    double_pendulum_T_rotations,
+    double_pendulum_T_scalar,
+    double_pendulum_V,
+    elastic_hand,
+    elastic_T,
+    elastic_V,
+)
+from _timing import in_loop, interleaved  # noqa: E402
+
+TOL = 1e-8
+SOLVER = diffrax.Tsit5()
+ROWS = []  # (row, system, ratio, target)
+
+
+def report(row, system, ratio, target, detail=""):
+    ROWS.append((row, system, ratio, target))
+    mark = "ok " if ratio <= target else "MISS"
+    print(f"  {mark} {row:<46s} {system:<18s} {ratio:6.2f}x  (target {target}x) {detail}",
+          flush=True)
+
+
+def systems():
+    chain_accelerations, _ = chain_hand(10)
+    return {
+        "double pendulum": (jaxdyn.Lagrangian(double_pendulum_T_scalar, double_pendulum_V),
+                            DOUBLE_PENDULUM_PARAMS, double_pendulum_fastest,
+                            np.array([1.3, 0.4]), np.array([0.0, 0.0])),
+        "elastic pendulum": (jaxdyn.Lagrangian(elastic_T, elastic_V), ELASTIC_PARAMS,
+                             elastic_hand, np.array([1.4, 1.0]), np.array([0.0, 0.0])),
+        "chain of 10": (jaxdyn.Lagrangian(chain_T, chain_V), CHAIN_PARAMS, chain_accelerations,
+                        np.full(10, 0.9), np.zeros(10)),
+    }
+
+
+def floor_solve(hand, n, t1, ts=None):
+    """jax.jit of diffeqsolve on the hand-written equations, state y = [q; q̇]."""
+    def field(t, y, p):
+        return jnp.concatenate([y[n:], hand(t, y[:n], y[n:], p)])
+
+    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+
+    @jax.jit
+    def solve(y0, p):
+        return diffrax.diffeqsolve(diffrax.ODETerm(field), SOLVER, 0.0, t1, None, y0, args=p,
+                                   saveat=saveat, max_steps=16**4,
+                                   stepsize_controller=diffrax.PIDController(rtol=TOL,
+                                                                             atol=TOL)).ys
+    return solve
+
+
+def as_arrays(params):
+    return {k: jnp.asarray(v) for k, v in params.items()}
+
+
+def checks_in_loop(name, system, params, hand, q0, u0, rounds):
+    """Deliverable 1: accelerations with their default check against throw=False."""
+    p = as_arrays(params)
+    t = jnp.asarray(0.0)
+    n_loop = 20000
+    loops = {
+        "hand": in_loop(hand, n_loop),
+        "throw=False": in_loop(lambda t, q, u, p: system.accelerations(t, q, u, p, throw=False),
+                               n_loop),
+        "default": in_loop(lambda t, q, u, p: system.accelerations(t, q, u, p), n_loop),
+    }
+    q, u = jnp.asarray(q0), jnp.asarray(u0)
+    times = interleaved({k: (f, (t, q, u, p)) for k, f in loops.items()}, number=1,
+                        rounds=rounds)
+    report("accelerations default / throw=False, loop", name,
+           times["default"] / times["throw=False"], 1.1,
+           f"({times['default'] / n_loop * 1e9:.0f} / {times['throw=False'] / n_loop * 1e9:.0f}"
+           f" ns; hand {times['hand'] / n_loop * 1e9:.0f} ns)")
+    rng = np.random.default_rng(0)
+    qs = jnp.asarray(q0 + 0.1 * rng.standard_normal((1024, len(q0))))
+    us = jnp.asarray(u0 + 0.1 * rng.standard_normal((1024, len(u0))))
+    vmapped = {
+        "throw=False": jax.jit(jax.vmap(lambda q, u, p: system.accelerations(
+            t, q, u, p, throw=False), in_axes=(0, 0, None))),
+        "default": jax.jit(jax.vmap(lambda q, u, p: system.accelerations(t, q, u, p),
+                                    in_axes=(0, 0, None))),
+    }
+    times = interleaved({k: (f, (qs, us, p)) for k, f in vmapped.items()}, number=20,
+                        rounds=rounds)
+    report("accelerations default / throw=False, vmap", name,
+           times["default"] / times["throw=False"], 1.1)
+
+
+def trajectories(name, system, params, hand, q0, u0, rounds):
+    """Deliverable 2: simulate as the README calls it, short and long trajectories."""
+    n = len(q0)
+    p_arrays = as_arrays(params)
+    q0j, u0j = jnp.asarray(q0), jnp.asarray(u0)
+    for label, t1 in (("short", 10.0 if n <= 2 else 2.0), ("long", 100.0 if n <= 2 else 20.0)):
+        floor = floor_solve(hand, n, t1)
+        y0 = jnp.concatenate([q0j, u0j])
+
+        def called():  # as a user calls it: not jitted, default save and throw
+            return jaxdyn.simulate(system, q0j, u0j, params, t1=t1, solver=diffrax.Tsit5(),
+                                   rtol=TOL, atol=TOL)
+
+        jitted = jax.jit(lambda q0, u0, p: jaxdyn.simulate(
+            system, q0, u0, p, t1=t1, solver=SOLVER, rtol=TOL, atol=TOL, throw=False).q)
+        steps = int(called().num_steps)
+        times = interleaved({"floor": (floor, (y0, p_arrays)), "simulate": (called, ()),
+                             "jit": (jitted, (q0j, u0j, p_arrays))},
+                            number=3 if label == "long" else 10, rounds=rounds)
+        report(f"simulate ({label}, {steps} steps) / floor", name,
+               times["simulate"] / times["floor"], 1.3,
+               f"({times['simulate'] * 1e3:.2f} / {times['floor'] * 1e3:.2f} ms)")
+        report(f"jax.jit(simulate, throw=False) ({label}) / floor", name,
+               times["jit"] / times["floor"], 1.3)
+
+
+def batches(size, rounds):
+    """Deliverable 3: simulate_batch and jax.vmap(simulate) against the vmapped floor."""
+    angles = np.random.default_rng(0).permutation(np.linspace(0.5, 2.5, size))
+    q0 = jnp.asarray(np.stack([angles, 0.5 * angles], axis=1))
+    u0 = jnp.zeros_like(q0)
+    p_arrays = as_arrays(DOUBLE_PENDULUM_PARAMS)
+    floor = jax.jit(jax.vmap(floor_solve(double_pendulum_fastest, 2, 10.0), in_axes=(0, None)))
+    candidates = {"floor": (floor, (jnp.concatenate([q0, u0], axis=1), p_arrays))}
+    for label, T in (("scalar T", double_pendulum_T_scalar), ("vector T", double_pendulum_T),
+                     ("rotation T", double_pendulum_T_rotations)):
+        system = jaxdyn.Lagrangian(T, double_pendulum_V)
+        candidates[f"simulate_batch, {label}"] = (
+            lambda system=system: jaxdyn.simulate_batch(
+                system, q0, u0, DOUBLE_PENDULUM_PARAMS, t1=10.0, solver=diffrax.Tsit5(),
+                rtol=TOL, atol=TOL, save="q", progress=False).q, ())
+        candidates[f"vmap(simulate), {label}"] = (
+            jax.jit(jax.vmap(lambda q, u, p, system=system: jaxdyn.simulate(
+                system, q, u, p, t1=10.0, solver=SOLVER, rtol=TOL, atol=TOL, save="q",
+                throw=False).q, in_axes=(0, 0, None))), (q0, u0, p_arrays))
+    times = interleaved(candidates, number=1, rounds=rounds)
+    for key, value in times.items():
+        if key != "floor":
+            report(f"{key.split(',')[0]} ({size}) / vmapped floor", key.split(", ")[1],
+                   value / times["floor"], 1.3)
+
+
+def gradients(name, system, params, hand, q0, u0, rounds):
+    """Deliverable 4: jax.grad of a loss on the final state against one forward simulate."""
+    p_arrays = as_arrays(params)
+    q0j, u0j = jnp.asarray(q0), jnp.asarray(u0)
+
+    def forward(p):
+        return jaxdyn.simulate(system, q0j, u0j, p, t1=10.0, solver=SOLVER, rtol=TOL,
+                               atol=TOL).q[-1]
+
+    loss = lambda p: jnp.sum(forward(p) ** 2)  # noqa: E731
+    times = interleaved({"forward": (jax.jit(forward), (p_arrays,)),
+                         "grad": (jax.jit(jax.grad(loss)), (p_arrays,))}, number=3,
+                        rounds=rounds)
+    report("jax.grad(simulate) / forward simulate", name, times["grad"] / times["forward"],
+           4.0)
+    try:
+        jax.jacfwd(forward)(p_arrays)
+        works = "works"
+    except Exception as error:  # noqa: BLE001 -- reported, the row is the point
+        works = f"fails: {type(error).__name__}"
+    print(f"       jax.jacfwd through simulate with default options: {works}")
+
+
+def compile_times(name, system, params, hand, q0, u0):
+    """Deliverable 5: the first call of simulate against the first call of the floor."""
+    p_arrays = as_arrays(params)
+    q0j, u0j = jnp.asarray(q0), jnp.asarray(u0)
+    jax.clear_caches()
+    start = time.perf_counter()
+    jax.block_until_ready(floor_solve(hand, len(q0), 10.0)(jnp.concatenate([q0j, u0j]),
+                                                            p_arrays))
+    floor = time.perf_counter() - start
+    jax.clear_caches()
+    fresh = jaxdyn.Lagrangian(system.kinetic, system.potential)  # nothing cached
+    start = time.perf_counter()
+    jaxdyn.simulate(fresh, q0j, u0j, params, t1=10.0, solver=diffrax.Tsit5(), rtol=TOL,
+                    atol=TOL)
+    ours = time.perf_counter() - start
+    report("first simulate / first floor call", name, ours / floor, 1.5,
+           f"({ours:.2f} / {floor:.2f} s)")
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--check", action="store_true")
+    parser.add_argument("--only", default="checks,trajectories,batches,gradients,compile")
+    args = parser.parse_args()
+    rounds = 5 if args.quick else 9
+    only = set(args.only.split(","))
+    cases = systems()
+    print(f"jax {jax.__version__}, diffrax {diffrax.__version__}, {jax.devices()[0].platform}, "
+          f"{len(jax.devices())} device(s), float64")
+    if "checks" in only:
+        print("1. default checks (medians of interleaved rounds)")
+        for name, case in cases.items():
+            checks_in_loop(name, *case, rounds)
+    if "trajectories" in only:
+        print("2. simulate as the README calls it (Tsit5, rtol = atol = 1e-8)")
+        for name, case in cases.items():
+            trajectories(name, *case, rounds)
+    if "batches" in only:
+        print("3. batches of double pendulums (10 s, final state)")
+        for size in (1024,) if args.quick else (1024, 16384):
+            batches(size, 3 if size > 1024 else rounds)
+    if "gradients" in only:
+        print("4. gradients")
+        for name in ("double pendulum", "elastic pendulum"):
+            gradients(name, *cases[name], rounds)
+    if "compile" in only:
+        print("5. compile time")
+        for name in ("double pendulum", "elastic pendulum"):
+            compile_times(name, *cases[name])
+    missed = [row for row in ROWS if row[2] > row[3]]
+    print(f"\n{len(ROWS) - len(missed)} of {len(ROWS)} rows meet their targets.")
+    if args.check and missed:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

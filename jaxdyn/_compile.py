@@ -1,0 +1,153 @@
+"""Compiled entry points whose call costs what `jax.jit`'s own dispatch costs.
+
+`eqx.filter_jit` traces the arrays among its arguments and treats everything else (the user's
+callbacks, solvers, options) as static. Its dispatch re-partitions and re-hashes every argument
+in Python at each call, about 100–200 µs for `simulate`'s arguments: more than a whole solve of
+a small system over a few hundred steps. `filter_jit` here keeps those semantics but caches, per
+argument structure, a `jax.jit` of the array leaves alone, so that a repeated call costs one
+`tree_flatten`, a dictionary look-up and `jax.jit`'s C++ dispatch.
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+import numpy as np
+
+
+def filter_jit(fn):
+    """`eqx.filter_jit(fn)` (arrays traced, other leaves static; non-array outputs allowed)
+    with a cached dispatch.
+
+    The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
+    by identity, modules and numbers by value) and the shapes and dtypes of their arrays.
+    Arguments with an unhashable non-array leaf take `eqx.filter_jit`'s own path. Under an
+    outer trace (`jax.jit`, `vmap`, `grad`) both are the same inlined call.
+    """
+    fallback = eqx.filter_jit(fn)
+    cache: dict = {}
+
+    @functools.wraps(fn)
+    def wrapper(*args):
+        leaves, treedef = _flatten(args)
+        kinds = [_kind(type(x)) for x in leaves]
+        if _TRACER in kinds:
+            return fallback(*args)
+        dynamic = [i for i, k in enumerate(kinds) if k is _ARRAY]
+        arrays = [leaves[i] for i in dynamic]
+        # Typed, so that equal values of different types (1, 1.0, True) stay apart.
+        static = tuple((type(x), x) for x, k in zip(leaves, kinds) if k is _STATIC)
+        try:
+            key = (treedef, static, tuple((x.shape, x.dtype) for x in arrays))
+            entry = cache.get(key)
+        except TypeError:  # an unhashable option
+            return fallback(*args)
+        if entry is None:
+            entry = cache[key] = _Entry(fn, treedef, leaves, dynamic)
+        out = entry.compiled(*arrays)
+        return jax.tree_util.tree_unflatten(
+            entry.out_treedef, _merge(entry.out_static, entry.out_dynamic, out))
+
+    wrapper.clear_cache = cache.clear
+    return wrapper
+
+
+class _Entry:
+    """One argument structure: its `jax.jit`, and the static part of its output (recorded
+    when traced)."""
+
+    def __init__(self, fn, treedef, leaves, dynamic):
+        template = list(leaves)
+
+        def arrays_only(*arrays):
+            filled = list(template)
+            for i, x in zip(dynamic, arrays):
+                filled[i] = x
+            out = fn(*_unflatten(treedef, filled))
+            out_leaves, self.out_treedef = jax.tree_util.tree_flatten(out)
+            kinds = [_kind(type(x)) for x in out_leaves]
+            self.out_dynamic = [i for i, k in enumerate(kinds) if k is not _STATIC]
+            self.out_static = {i: x for i, (x, k) in enumerate(zip(out_leaves, kinds))
+                               if k is _STATIC}
+            return [out_leaves[i] for i in self.out_dynamic]
+
+        # The template's arrays are replaced at every call: drop them, so that the first
+        # call's inputs are not kept alive by the cache.
+        for i in dynamic:
+            template[i] = None
+        self.compiled = jax.jit(arrays_only)
+
+
+def _merge(static, dynamic_positions, dynamic_values):
+    leaves = [None] * (len(static) + len(dynamic_positions))
+    for i, x in static.items():
+        leaves[i] = x
+    for i, x in zip(dynamic_positions, dynamic_values):
+        leaves[i] = x
+    return leaves
+
+
+# Modules seen recently (the user's system, solver, adjoint), flattened once: they are
+# immutable, and flattening a module runs Python for every field (~30 µs for `simulate`'s
+# arguments). Keyed by identity; the entry keeps the module alive, so its id is not reused.
+_MODULES: dict = {}
+_MODULES_MAX = 256
+
+
+def _flatten(args):
+    """(leaves, treedef) of a tuple of arguments; modules among the arguments (and in tuples
+    of them) are flattened once and remembered. `treedef` is a nested tuple of treedefs."""
+    leaves, treedefs = [], []
+    for x in args:
+        if type(x) is tuple:
+            sub_leaves, sub_treedef = _flatten(x)
+            treedefs.append(("tuple", sub_treedef))
+        elif _is_module(type(x)):
+            hit = _MODULES.get(id(x))
+            if hit is None or hit[0] is not x:
+                hit = (x, *jax.tree_util.tree_flatten(x))
+                if not any(_kind(type(leaf)) is _TRACER for leaf in hit[1]):
+                    if len(_MODULES) >= _MODULES_MAX:
+                        _MODULES.clear()
+                    _MODULES[id(x)] = hit
+            sub_leaves, sub_treedef = hit[1], hit[2]
+            treedefs.append((len(sub_leaves), sub_treedef))
+        else:
+            sub_leaves, sub_treedef = jax.tree_util.tree_flatten(x)
+            treedefs.append((len(sub_leaves), sub_treedef))
+        leaves.extend(sub_leaves)
+    return leaves, tuple(treedefs)
+
+
+# What a leaf is, by its type (cached: `isinstance` against JAX's abstract array classes costs
+# more than the rest of the dispatch).
+_ARRAY, _TRACER, _STATIC = "array", "tracer", "static"
+
+
+@functools.cache
+def _kind(cls):
+    if issubclass(cls, jax.core.Tracer):
+        return _TRACER
+    return _ARRAY if issubclass(cls, (jax.Array, np.ndarray, np.generic)) else _STATIC
+
+
+@functools.cache
+def _is_module(cls):
+    return issubclass(cls, eqx.Module)
+
+
+def _unflatten(treedefs, leaves):
+    out, start = [], 0
+    for kind, treedef in treedefs:
+        if kind == "tuple":
+            count = _count(treedef)
+            out.append(tuple(_unflatten(treedef, leaves[start:start + count])))
+        else:
+            count = kind
+            out.append(jax.tree_util.tree_unflatten(treedef, leaves[start:start + count]))
+        start += count
+    return out
+
+
+def _count(treedefs):
+    return sum(_count(t) if k == "tuple" else k for k, t in treedefs)
