@@ -29,7 +29,6 @@ _FAILURES = [item for item in RESULTS._name_to_item.values() if item != RESULTS.
 LANES = 8
 PILOT_TOLERANCE = {8: 1e-6, 4: 1e-4}  # by bytes per float: the pilot of order="cost"
 _NUMBERS = ("t0", "t1", "ts", "rtol", "atol", "dt0")  # traced: changing them reuses the compile
-_DEFAULT_SOLVER = inspect.signature(simulate).parameters["solver"].default
 _OPTIONS = frozenset(inspect.signature(simulate).parameters) - {"dynamics", "q0", "u0", "p",
                                                                 "throw"}
 
@@ -59,16 +58,13 @@ def simulate_batch(
     whole chunks of a multiple of 8 members per device (once it has 8 per device), and the
     padding is stripped from the result: every member then fills a lane of XLA's vector code,
     so that its result does not depend on the layout of the batch (devices, chunks, position),
-    bit for bit. (A member in a partly filled vector is computed by scalar code that differs in
-    the last bits; on a chaotic trajectory such differences grow to the size of the motion, as
-    they do between a batch and single `jaxdyn.simulate` calls.)
+    to the last bit on regular motion; on chaotic motion XLA's vectorisation of the
+    written-out Runge–Kutta stages can differ by an ulp between chunk shapes, which the motion
+    amplifies (2e-12 after 5 s of a chaotic double pendulum), as it amplifies the difference
+    between a batch and single `jaxdyn.simulate` calls (scalar code).
     Batches larger than memory run in chunks, one compiled solve reused for every chunk, each
-    chunk's results moved to host memory before the next starts. With 8 or more members per
-    device, a Runge–Kutta solver whose `scan_kind` is left at None runs its stages as a bounded
-    loop: vmapped, the whole solve runs about 1.3× faster than with diffrax's default stage
-    loop. That is the program of `jax.vmap(simulate)` with `solver=...(scan_kind="bounded")`,
-    equal to it bit for bit; diffrax's default stage loop fuses the arithmetic differently and
-    agrees to round-off (which chaotic motion amplifies).
+    chunk's results moved to host memory before the next starts. Each device runs the program
+    of `jax.vmap(simulate)` on its members, and the results equal it bit for bit.
 
     **Arguments:**
 
@@ -146,8 +142,6 @@ def simulate_batch(
         setup = (dynamics, mesh, tuple(sorted(options.items())))
         return _staged(setup, batched, shared, size, chunk, throw)
 
-    if chunk // width >= LANES:
-        options = _batched_stages(options)
     setup = (dynamics, mesh, tuple(sorted(options.items())))
     permutation = None
     if order == "cost":  # a pilot solve counts each member's steps
@@ -187,20 +181,6 @@ def simulate_batch(
         inverse = np.argsort(permutation)
         solution = jax.tree_util.tree_map(lambda x: x[inverse], solution)
     return solution
-
-
-def _batched_stages(options):
-    """The options with a Runge–Kutta solver's stages run as a bounded loop (unless the user
-    chose a kind). Vmapped over a batch, the solve runs about 1.3× faster than with diffrax's
-    default (checkpointed) stage loop; a single solve, and reverse
-    mode, are faster with the default (benchmarks/README.md), so this is for the eager batch
-    of at least `LANES` members per device, which is not differentiated, alone."""
-    solver = options.get("solver", _DEFAULT_SOLVER)
-    if isinstance(solver, diffrax.AbstractRungeKutta) and solver.scan_kind is None:
-        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "bounded",
-                             is_leaf=lambda x: x is None)
-        return dict(options, solver=solver)
-    return options
 
 
 def _batch_size(batched):

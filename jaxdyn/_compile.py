@@ -17,7 +17,7 @@ import numpy as np
 
 def filter_jit(fn):
     """`eqx.filter_jit(fn)` (arrays traced, other leaves static; non-array outputs allowed)
-    with a cached dispatch.
+    with a cached dispatch; outside a trace the outputs are ready when it returns.
 
     The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
     by identity, modules and numbers by value) and the shapes and dtypes of their arrays.
@@ -44,7 +44,9 @@ def filter_jit(fn):
             return fallback(*args)
         if entry is None:
             entry = cache[key] = _Entry(fn, treedef, leaves, dynamic)
-        out = entry.compiled(*arrays)
+        # Ready before returning (one batched wait on the arrays, not a walk of the output
+        # pytree), so that an error raised by a check inside reaches the caller from here.
+        out = jax.block_until_ready(entry.compiled(*arrays))
         return jax.tree_util.tree_unflatten(
             entry.out_treedef, _merge(entry.out_static, entry.out_dynamic, out))
 

@@ -85,15 +85,19 @@ def _raise(messages, labels, preds, *state):
     raise _CheckFailed(message)
 
 
-def reports_state(fn):
+def reports_state(fn=None, *, block: bool = True):
     """Decorate an entry point so that a failed `error_if` leaves it as a `RuntimeError`
-    carrying jaxdyn's message alone (not the runtime's wrapping of it)."""
+    carrying jaxdyn's message alone (not the runtime's wrapping of it). `block=False` for an
+    entry point whose results are ready when it returns (`jaxdyn._compile.filter_jit`)."""
+    if fn is None:
+        return functools.partial(reports_state, block=block)
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         _where.clear()
         try:
-            return _block(fn(*args, **kwargs))
+            out = fn(*args, **kwargs)
+            return _block(out) if block else out
         except Exception:
             if not _where:
                 raise

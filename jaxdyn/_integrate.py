@@ -19,6 +19,8 @@ from ._dynamics import (
 from ._linalg import condition_number, factorise
 from ._compile import filter_jit
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
+from ._runge_kutta import UnrolledStages
+from ._sensitivities import MAX_FORWARD, differentiable_size, with_sensitivities
 from ._solution import RESULTS, Solution
 from ._state import check_parameter_dtypes, check_vector, numbers_as_arrays, state_dtype
 from ._variational import AbstractStructurePreserving
@@ -89,7 +91,7 @@ def _vector_field(t, y, args):
     return layout.join(rates, accelerations)
 
 
-@reports_state
+@reports_state(block=False)  # _simulate's results are ready when it returns
 def simulate(
     dynamics: AbstractDynamics,
     q0,
@@ -107,7 +109,7 @@ def simulate(
     dt0=None,
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     max_steps: int | None = None,
-    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
 ) -> Solution:
     """Integrate q̇ = K u, M u̇ = f from (t0, q0, u0) to t1.
@@ -139,13 +141,17 @@ def simulate(
       65 536, or with fixed steps (concrete t0, t1, dt0) the number of steps the interval
       takes, if that is more (rounded up to a power of two, so that nearby intervals reuse
       the compiled solve).
-    - `adjoint`: how to differentiate. The default, diffrax's `RecursiveCheckpointAdjoint`,
-      is reverse mode through the discrete solve (exactly what finite differences of the
-      solve give) with about √(2 max_steps) checkpoints, a memory bound that also holds under
-      `vmap`. For few parameters and many outputs, `diffrax.ForwardMode()` with `jax.jacfwd`
-      or `jax.jvp` is cheaper on systems beyond a few coordinates; for one long solve,
-      `RecursiveCheckpointAdjoint(checkpoints=...)` with a checkpoint per step avoids
-      recomputation. Measured costs: benchmarks/README.md.
+    - `adjoint`: how to differentiate. The default (None), when q0, u0 and p hold at most
+      16 floating-point entries and `dense` is False: forward sensitivities. The solve
+      carries ∂y/∂x for the entries being differentiated (one tangent each, vectorised) and
+      the derivative is applied as that matrix, so that `jax.grad`, `jax.jacrev`, `jax.jvp`
+      and `jax.jacfwd` all work and cost a small multiple of one solve. Otherwise diffrax's
+      `RecursiveCheckpointAdjoint`: reverse mode through the discrete solve with about
+      √(2 max_steps) checkpoints, a memory bound that also holds under `vmap` (forward mode
+      then needs `adjoint=diffrax.ForwardMode()`). Both differentiate the discrete solve
+      (exactly what finite differences of the solve give). Any diffrax adjoint may be
+      passed; for one long solve, `RecursiveCheckpointAdjoint(checkpoints=...)` with a
+      checkpoint per step avoids recomputation. Measured costs: benchmarks/README.md.
     - `throw`: raise on failure; if False, inspect `Solution.result` (NaN or inf in the
       initial state or parameters then gives `RESULTS.nonfinite_state_or_parameters` and NaN
       states, so that one bad member does not stop a vmapped batch).
@@ -237,22 +243,18 @@ def _simulate(dynamics, q0, u0, numbers, options):
                             controller_state=True)
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    forward = (adjoint is None and not dense
+               and differentiable_size((q0, u0, p)) <= MAX_FORWARD)
+    if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
+            and (forward or isinstance(adjoint, diffrax.ForwardMode))):
+        # The same steps, without a loop over the stages (2× faster on small systems). Not
+        # for reverse mode, whose pass through written-out stages costs 3× diffrax's loop.
+        solver = UnrolledStages(solver)
     if dynamics.state_projection() is not None:
         solver = _Projected(solver)
-    solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field),
-        solver,
-        t0,
-        t1,
-        dt0,
-        layout.join(q0, u0),
-        args=(dynamics, p, factorisation, layout),
-        saveat=saveat,
-        stepsize_controller=_guard(stepsize_controller),
-        adjoint=adjoint,
-        max_steps=max_steps,
-        throw=False,  # raised below, with jaxdyn's own messages
-    )
+    solution = _solve(solver, t0, t1, dt0, layout.join(q0, u0),
+                      (dynamics, p, factorisation, layout), saveat,
+                      _guard(stepsize_controller), adjoint, max_steps, forward=forward)
     (q, u), last = solution.ys
     q_last, u_last = layout.split(last)
     projection = dynamics.state_projection()
@@ -299,7 +301,9 @@ _STATE_QUANTITIES = ("q", "u", "qd")
 def _check_save(save, dynamics):
     """Trace-time check of `save`: state quantities, and the records the formulation offers
     (`AbstractDynamics.saved_records`)."""
-    offered = dynamics.saved_records() if isinstance(dynamics, AbstractDynamics) else ()
+    offered = dynamics.saved_records if isinstance(dynamics, AbstractDynamics) else ()
+    if save and all(name in _STATE_QUANTITIES or name in offered for name in save):
+        return
     names = ", ".join(repr(name) for name in (*_STATE_QUANTITIES, *offered))
     if not save:
         raise ValueError(f"save must name some of {names}, got {save!r}.")
@@ -309,6 +313,30 @@ def _check_save(save, dynamics):
                 f"save names {name!r}, which {type(dynamics).__name__} does not record: save "
                 f"must name some of {names} (a jaxdyn.Constrained formulation also records "
                 "'constraints').")
+
+
+def _solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps, *,
+           forward):
+    """diffrax's solve of the equations of motion, differentiated by forward sensitivities
+    (`forward`: few inputs, `jaxdyn._sensitivities`) or by `adjoint` (default: reverse mode
+    through checkpoints). Returns the `diffrax.Solution` (`throw=False`: jaxdyn raises its
+    own errors after the solve)."""
+    def run(inputs, adjoint):
+        t0, t1, dt0, y0, args, saveat, controller = inputs
+        return diffrax.diffeqsolve(diffrax.ODETerm(_vector_field), solver, t0, t1, dt0, y0,
+                                   args=args, saveat=saveat, stepsize_controller=controller,
+                                   adjoint=adjoint, max_steps=max_steps, throw=False)
+
+    inputs = (t0, t1, dt0, y0, args, saveat, controller)
+    if not forward:
+        return run(inputs, diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint)
+    dynamic, static = eqx.partition(inputs, eqx.is_array)
+
+    def arrays_out(dynamic):  # what `simulate` reads of the solution, all arrays
+        solution = run(eqx.combine(dynamic, static), diffrax.ForwardMode())
+        return eqx.filter(solution, eqx.is_array)
+
+    return with_sensitivities(arrays_out, dynamic)
 
 
 def _fixed_steps(solver, rtol, atol, dt0, stepsize_controller):

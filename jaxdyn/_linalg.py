@@ -66,38 +66,52 @@ def factorise(mass_matrix, *, unrolled: bool, blocks=None) -> Factorisation:
 
     With `unrolled` every block is written out in scalar operations (the caller evaluates the
     program as straight-line code); otherwise blocks up to `UNROLL_MAX` are, larger ones go to
-    LAPACK. M counts as singular when a pivot D_j is not finite or
-    min D_j ≤ m ε max_j |M_jj|, which also catches matrices that are positive definite only
-    by round-off.
+    LAPACK. A pivot fails when D_j ≤ m ε max_k |M_kk| (over the block, of size m) or is not
+    finite, which also catches matrices that are positive definite only by round-off (a
+    coordinate singularity approached: M = diag(1, sin² θ) near the pole). `singular` says
+    whether some pivot failed.
     """
     m = mass_matrix.shape[-1]
     blocks = [tuple(range(m))] if blocks is None else [tuple(b) for b in blocks]
     sizes = sorted({len(b) for b in blocks})
     groups = tuple(tuple(b for b in blocks if len(b) == size) for size in sizes)
-    diagonal = jnp.stack([mass_matrix[i, i] for i in range(m)]) if unrolled \
-        else jnp.diagonal(mass_matrix)
-    threshold = m * jnp.finfo(mass_matrix.dtype).eps * jnp.max(jnp.abs(diagonal))
-    factors, written_out, pivots = [], [], []
+    factors, written_out, failed = [], [], []
     for group in groups:
         index = np.asarray(group)
         sub = mass_matrix[None] if _whole(group, m) else \
             mass_matrix[index[:, :, None], index[:, None, :]]
         write_out = unrolled or index.shape[1] <= UNROLL_MAX
         if write_out:
-            lower, group_pivots = ldl(sub)
-            factors.append((lower, 1 / group_pivots))
+            lower, reciprocals, group_failed = ldl(sub)
+            factors.append((lower, reciprocals))
         else:
             cholesky = jnp.linalg.cholesky(sub)
-            group_pivots = jnp.diagonal(cholesky, axis1=-2, axis2=-1) ** 2
+            pivots = jnp.diagonal(cholesky, axis1=-2, axis2=-1) ** 2
+            diagonal = jnp.diagonal(sub, axis1=-2, axis2=-1)
+            threshold = sub.shape[-1] * jnp.finfo(sub.dtype).eps * jnp.max(
+                jnp.abs(diagonal), axis=-1, keepdims=True)
+            group_failed = ~(pivots > threshold)  # also true for NaN pivots
             factors.append(cholesky)
         written_out.append(write_out)
-        pivots.append(group_pivots.reshape(-1))
-    singular = ~jnp.all(jnp.concatenate(pivots) > threshold)  # also true for NaN pivots
+        failed.append(group_failed.reshape(-1))
+    singular = jnp.any(jnp.concatenate(failed))
     return Factorisation(groups, tuple(factors), tuple(written_out), singular)
 
 
+def _threshold(diagonal):
+    """m ε max_j |M_jj|: a pivot at or below it has been cancelled to round-off of M's scale."""
+    largest = jnp.abs(diagonal[0])
+    for entry in diagonal[1:]:
+        largest = jnp.maximum(largest, jnp.abs(entry))
+    return len(diagonal) * jnp.finfo(largest.dtype).eps * largest
+
+
 def solve(factorisation: Factorisation, forcing):
-    """a = M⁻¹ f from the factorisation; NaN where M is singular."""
+    """a = M⁻¹ f from the factorisation.
+
+    Where a pivot failed, the entries of a that depend on it are NaN (written-out blocks:
+    through the NaN reciprocal pivot, without coupling the other entries, so that XLA does
+    not recompute every entry's inputs for every entry); LAPACK blocks are NaN whole."""
     m = forcing.shape[-1]
     accelerations = None
     for group, factor, write_out in zip(factorisation.groups, factorisation.factors,
@@ -115,7 +129,9 @@ def solve(factorisation: Factorisation, forcing):
             if accelerations is None:
                 accelerations = jnp.zeros_like(forcing)
             accelerations = accelerations.at[index].set(x)
-    return jnp.where(factorisation.singular, jnp.nan, accelerations)
+    if not all(factorisation.written_out):
+        accelerations = jnp.where(factorisation.singular, jnp.nan, accelerations)
+    return accelerations
 
 
 def _whole(group, m):
@@ -125,31 +141,41 @@ def _whole(group, m):
 def solve_mass_matrix(mass_matrix, forcing, *, unrolled: bool, blocks=None):
     """a = M⁻¹ f for symmetric positive definite M, with the failure flags.
 
-    Returns (a, singular, nonfinite): a is NaN wherever M is singular or f not finite, so that
-    a solver sees the failure without a branch; `singular` and `nonfinite` (boolean scalars)
-    tell which, for error messages.
+    Returns (a, singular, nonfinite): the entries of a that depend on a failed pivot of M or
+    on a non-finite entry of f are NaN, so that a solver sees the failure without a branch;
+    `singular` and `nonfinite` (boolean scalars) tell which, for error messages.
     """
     factorisation = factorise(mass_matrix, unrolled=unrolled, blocks=blocks)
-    nonfinite = ~jnp.all(jnp.isfinite(forcing))
-    accelerations = solve(factorisation, forcing)
-    return jnp.where(nonfinite, jnp.nan, accelerations), factorisation.singular, nonfinite
+    finite = jnp.isfinite(forcing)
+    # Entry by entry (inf would not always reach the solution as NaN): no coupling.
+    accelerations = solve(factorisation, jnp.where(finite, forcing, jnp.nan))
+    return accelerations, factorisation.singular, ~jnp.all(finite)
 
 
 def ldl(matrix):
     """M = L D Lᵀ written out entry by entry (no square roots), vectorised over leading axes.
-    Returns (L as nested lists of entries, D stacked on the last axis)."""
+
+    Returns (L as nested lists of entries, the reciprocal pivots 1/D_j, which pivots failed),
+    the last two stacked on the last axis. A failed pivot (D_j ≤ m ε max_k |M_kk|, or not
+    finite) has a NaN reciprocal, which reaches exactly the entries of L, and of a solution, that
+    depend on it.
+    """
     m = matrix.shape[-1]
+    threshold = _threshold([matrix[..., j, j] for j in range(m)])
     lower = [[None] * m for _ in range(m)]
-    pivots, reciprocals = [], []
+    pivots, reciprocals, failed = [], [], []
     for j in range(m):
         pivots.append(matrix[..., j, j]
                       - sum(lower[j][k] ** 2 * pivots[k] for k in range(j)))
+        ok = pivots[j] > threshold  # False for NaN
+        failed.append(~ok)
         # One reciprocal per pivot, so that XLA does not split the computation at divisions.
-        reciprocals.append(1 / pivots[j])
+        reciprocals.append(jnp.where(ok, 1 / pivots[j], jnp.nan))
         for i in range(j + 1, m):
             dot = sum(lower[i][k] * lower[j][k] * pivots[k] for k in range(j))
             lower[i][j] = (matrix[..., i, j] - dot) * reciprocals[j]
-    return tuple(tuple(row[:i]) for i, row in enumerate(lower)), jnp.stack(pivots, axis=-1)
+    return (tuple(tuple(row[:i]) for i, row in enumerate(lower)),
+            jnp.stack(reciprocals, axis=-1), jnp.stack(failed, axis=-1))
 
 
 def ldl_solve(lower, reciprocals, rhs):

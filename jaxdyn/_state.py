@@ -2,6 +2,7 @@
 the public methods that take states."""
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -106,25 +107,34 @@ def check_parameter_dtypes(p, dtype):
 
 
 def numbers_as_arrays(tree, dtype=None):
-    """Python floats and ints in `tree` as (NumPy) arrays, so that they are traced rather than
+    """Python floats and ints in `tree` as arrays, so that they are traced rather than
     compiled in: a new parameter value, time or tolerance then reuses the compiled program.
 
     Floats take `dtype` (that of the state; by default JAX's default float), so that a Python
-    number never changes the precision of a computation. NumPy arrays, unlike `jnp.asarray`,
-    cost no device dispatch here: they are transferred with the call's other inputs.
+    number never changes the precision of a computation. A float becomes a device array kept
+    for the next call with the same number (`_device_scalar`): a host value would be copied
+    to the device at every call, ~2 µs each, about as much as the rest of a call's dispatch.
     """
-    dtype = jnp.result_type(float) if dtype is None else dtype
+    dtype = np.dtype(jnp.result_type(float) if dtype is None else dtype)
 
     def convert(x):
         if isinstance(x, bool):
             return x
         if isinstance(x, float):
-            return np.asarray(x, dtype)
+            return _device_scalar(x, math.copysign(1.0, x), dtype)
         if isinstance(x, int):
             return np.asarray(x, jnp.result_type(int))
         return x
 
     return jax.tree_util.tree_map(convert, tree)
+
+
+@functools.lru_cache(maxsize=1024)
+def _device_scalar(value, sign, dtype):
+    # `sign` keeps 0.0 and -0.0 apart (they are equal as keys). Made concrete even when
+    # called under a trace, so that no tracer is kept.
+    with jax.ensure_compile_time_eval():
+        return jnp.asarray(value, dtype)
 
 
 def state_dtype(*candidates):
@@ -159,6 +169,6 @@ def public_method(signature: str):
             args = _positional(method.__name__, broadcast.names, args, kwargs)
             return compiled(self, numbers_as_arrays(args, state_dtype(*args[1:])), options)
 
-        return reports_state(wrapper)
+        return reports_state(wrapper, block=False)  # `compiled` returns ready results
 
     return decorator

@@ -87,11 +87,9 @@ def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
     assert bool(jnp.all(solution.result == jaxdyn.RESULTS.successful))
     np.testing.assert_allclose(solution.q[..., 0], closed_form(x0[:, 0], v0[:, 0], k),
                                atol=CLOSED_FORM_ATOL)
-    # The batch runs the Runge–Kutta stages as a bounded loop: jax.vmap of simulate with that
-    # solver is the same program, equal bit for bit.
-    bounded = dict(OPTIONS, solver=diffrax.Dopri8(scan_kind="bounded"))
+    # Each device runs the program of jax.vmap(simulate): equal bit for bit.
     vmapped = jax.jit(jax.vmap(lambda x, v, k: jaxdyn.simulate(
-        OSCILLATOR, x, v, {"m": 1.0, "k": k}, **bounded)))(x0, v0, k)
+        OSCILLATOR, x, v, {"m": 1.0, "k": k}, **OPTIONS)))(x0, v0, k)
     single = jax.jit(lambda x, v, k: jaxdyn.simulate(OSCILLATOR, x, v, {"m": 1.0, "k": k},
                                                      **OPTIONS))
     for i in range(21):
@@ -99,10 +97,10 @@ def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
         for field in ("q", "u", "qd", "num_steps"):
             np.testing.assert_array_equal(getattr(solution, field)[i],
                                           getattr(vmapped, field)[i], err_msg=f"{field} {i}")
-            # A single solve is another program (other vector code, so other round-off in
-            # the error estimate, which for this smooth motion is near round-off itself): the
-            # same steps, and trajectories apart by the order of the tolerance (measured
-            # 2e-9), where the closed form is 2e-7 away.
+            # A single solve is another program (scalar rather than vector code, so other
+            # round-off in the error estimate, which for this smooth motion is near round-off
+            # itself): the same steps, and trajectories apart by the order of the tolerance
+            # (measured up to 2e-9), where the closed form is 2e-7 away.
             np.testing.assert_allclose(getattr(solution, field)[i], getattr(alone, field),
                                        rtol=0, atol=1e-8, err_msg=f"{field}, member {i}")
 
@@ -214,7 +212,7 @@ def test_errors_name_the_problem(members):
 
 _SETUP = """
 import json, sys
-import diffrax, jax
+import jax
 jax.config.update("jax_enable_x64", True)
 {extra}
 import numpy as np, jaxdyn
@@ -249,7 +247,7 @@ def test_sharded_over_four_cpu_devices_equals_unsharded():
     """On 4 simulated CPU devices (in a subprocess, so the rest of the suite keeps one): 37
     members padded to 64 (16 per device), ordered by cost, and on two of the four devices in
     three chunks of 16, each equal to the unsharded vmap; and a chaotic double pendulum, where
-    any difference in round-off would grow to the size of the motion, equal too."""
+    a difference in round-off grows with the motion, equal to round-off so amplified."""
     script = _SETUP.format(extra="") + textwrap.dedent("""
         assert len(jax.devices()) == 4
         out = {"devices": len(jax.devices())}
@@ -269,16 +267,19 @@ def test_sharded_over_four_cpu_devices_equals_unsharded():
         q0 = np.stack([angles, angles / 2], axis=1)
         chaotic = dict(t1=5.0, rtol=1e-8, atol=1e-8)
         q = jaxdyn.simulate_batch(pendulum, q0, 0 * q0, **chaotic).q
-        # The same program unsharded: jax.vmap of simulate with the batch's stage loop.
         reference = jax.jit(jax.vmap(lambda q0: jaxdyn.simulate(
-            pendulum, q0, 0 * q0, solver=diffrax.Dopri8(scan_kind="bounded"),
-            **chaotic).q))(q0[pad])[:37]
+            pendulum, q0, 0 * q0, **chaotic).q))(q0[pad])[:37]
         out["chaotic double pendulum"] = float(np.max(np.abs(np.asarray(q - reference))))
         print(json.dumps(out))
     """)
     flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
     result = _result(_python(script, {"XLA_FLAGS": flags}))
     assert result.pop("devices") == 4
+    # The chaotic member: the written-out Runge–Kutta stages are vectorised by XLA according
+    # to the batch's shape, so an ulp of difference can appear and the motion amplifies it
+    # (measured 2.2e-12 after 5 s); every other layout agrees bit for bit.
+    chaotic = result.pop("chaotic double pendulum")
+    assert chaotic <= 1e-9, chaotic
     for name, difference in result.items():
         assert difference <= 1e-12, (name, difference)
 

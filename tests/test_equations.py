@@ -228,3 +228,19 @@ def test_python_numbers_keep_the_precision_of_the_state():
     q0, u0 = np.array([0.3], np.float32), np.array([0.0], np.float32)
     sol = jaxdyn.simulate(PENDULUM.dynamics, q0, u0, {"m": 1.0, "l": 0.5, "g": 9.81}, t1=0.5)
     assert sol.q.dtype == np.float32 and sol.ts.dtype == np.float32
+
+
+def test_a_singular_block_leaves_the_independent_accelerations_finite():
+    """Two uncoupled oscillators, one without mass: with throw=False only the massless one's
+    acceleration is NaN (the failed pivot reaches the entries that depend on it alone); the
+    other is the closed form −(k/m) x. The default check still names the singular M."""
+    pair = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * (p["m"][0] * qd[0] ** 2
+                                                     + p["m"][1] * qd[1] ** 2),
+                             lambda q, p: 0.5 * p["k"] * q @ q)
+    p = {"m": np.array([0.0, 2.0]), "k": 3.0}
+    q = np.array([0.4, 0.5])
+    a = pair.accelerations(0.0, q, np.zeros(2), p, throw=False)
+    assert np.isnan(a[0])
+    np.testing.assert_allclose(a[1], -3.0 / 2.0 * 0.5, rtol=1e-15)
+    with pytest.raises(RuntimeError, match="The mass matrix is singular"):
+        pair.accelerations(0.0, q, np.zeros(2), p)

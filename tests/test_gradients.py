@@ -150,3 +150,60 @@ def test_acceleration_parameter_gradient_against_reference_derivative():
     np.testing.assert_allclose(actual, expected, rtol=1e-10)
     fd = central_difference(lambda J: float(acceleration(float(J))), np.array(J), 1e-6)
     np.testing.assert_allclose(fd, expected, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Derivatives of simulate with its default adjoint, in both modes
+# ---------------------------------------------------------------------------------------------
+
+
+def _final_state(system, t1):
+    def final(p, q0, u0):
+        sol = jaxdyn.simulate(system.dynamics, q0, u0, p, t1=t1, rtol=SOLVER_TOL,
+                              atol=SOLVER_TOL)
+        return jnp.concatenate([sol.q[-1], sol.u[-1]])
+    return final
+
+
+def test_forward_mode_through_simulate_with_default_options():
+    """jax.jvp and jax.jacfwd through simulate as called by default (few parameters: forward
+    sensitivities), against central differences of the final state."""
+    system, q0, u0, t1, _ = CASES["double_pendulum"]
+    final = _final_state(system, t1)
+    keys = sorted(system.params)
+
+    def of_vector(v, q0=q0, u0=u0):
+        return final(dict(zip(keys, v)), q0, u0)
+
+    v = np.array([system.params[k] for k in keys])
+    jac = jax.jit(jax.jacfwd(of_vector))(v)
+    fd = central_difference(lambda v: np.asarray(jax.jit(of_vector)(v)), v, FD_STEP)
+    assert_gradient_close(jac, fd, what="jacfwd d(q, u)(t1)/dp")
+    direction = np.array([0.3, -1.0])
+    _, tangent = jax.jvp(lambda q0: final(system.params, q0, u0), (q0,), (direction,))
+    fd_q0 = central_difference(lambda q0: np.asarray(final(system.params, q0, u0)), q0, FD_STEP)
+    assert_gradient_close(tangent, fd_q0 @ direction, what="jvp along q0")
+
+
+def test_reverse_mode_for_many_inputs_through_checkpoints():
+    """Beyond 16 differentiable entries simulate differentiates by reverse mode through
+    checkpoints (a chain of 9 springs: 27 entries), against central differences."""
+    n = 9
+    chain = jaxdyn.Lagrangian(
+        lambda q, qd, p: 0.5 * jnp.sum(qd**2),
+        lambda q, p: 0.5 * jnp.sum(p["k"] * jnp.diff(q, prepend=0.0) ** 2))
+    k = np.linspace(1.0, 3.0, n)
+    q0 = np.linspace(0.1, 0.5, n)
+
+    @jax.jit
+    def loss(k, u0):
+        sol = jaxdyn.simulate(chain, q0, u0, {"k": k}, t1=1.0, rtol=SOLVER_TOL,
+                              atol=SOLVER_TOL)
+        return jnp.sum(sol.q[-1] ** 2)
+
+    u0 = np.zeros(n)
+    grad_k = jax.jit(jax.grad(loss))(k, u0)
+    fd = central_difference(lambda k: float(loss(k, u0)), k, FD_STEP)
+    assert_gradient_close(grad_k, fd, what="dL/dk")
+    with pytest.raises(TypeError, match="forward-mode"):  # JAX's refusal, documented
+        jax.jvp(lambda k: loss(k, u0), (k,), (np.ones(n),))

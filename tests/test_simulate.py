@@ -338,3 +338,54 @@ def test_solution_is_a_pytree_that_can_be_returned_from_jit():
     sol = run(np.array([-0.7]))
     q, _ = _ho_exact(HO_TS, np.array([-0.7]), HO_U0, HO_PARAMS)
     assert_close(sol.q, q, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("solver", [diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()],
+                         ids=lambda s: type(s).__name__)
+def test_written_out_stages_take_diffrax_steps(solver):
+    """simulate writes the Runge–Kutta stages out (no loop over them): the steps, their
+    number and the states are those of diffrax's own stage loop (`scan_kind="lax"`, which
+    simulate leaves as it is) on the same equations, to round-off; and both follow the
+    closed form of the double pendulum to the tolerance."""
+    from helpers import DOUBLE_PENDULUM
+
+    p = DOUBLE_PENDULUM.params
+    q0, u0 = np.array([1.3, -0.4]), np.array([0.2, 0.7])
+    ts = np.linspace(0.0, 3.0, 7)
+    # At 1e-8 no step's acceptance hinges on round-off of the error estimate (which the two
+    # sum in other orders: at 1e-9 Dopri8 takes 124 steps one way, 125 the other).
+    options = dict(t1=3.0, ts=ts, rtol=1e-8, atol=1e-8)
+    ours = jaxdyn.simulate(DOUBLE_PENDULUM.dynamics, q0, u0, p, solver=solver, **options)
+    looped = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+    theirs = jaxdyn.simulate(DOUBLE_PENDULUM.dynamics, q0, u0, p, solver=looped, **options)
+    assert int(ours.num_steps) == int(theirs.num_steps)
+    assert int(ours.num_rejected_steps) == int(theirs.num_rejected_steps)
+    np.testing.assert_allclose(ours.q, theirs.q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ours.u, theirs.u, rtol=0, atol=1e-12)
+    reference = scipy.integrate.solve_ivp(
+        lambda t, y: np.concatenate([y[2:], DOUBLE_PENDULUM.accelerations(y[:2], y[2:], p)]),
+        (0.0, 3.0), np.concatenate([q0, u0]), method="DOP853", t_eval=ts, rtol=1e-12,
+        atol=1e-12)
+    np.testing.assert_allclose(ours.q, reference.y[:2].T, rtol=0, atol=1e-5)
+
+
+def test_a_repeated_call_reuses_the_compiled_solve():
+    """New parameter values, times and tolerances (Python floats) reuse the compiled program:
+    the user's energy is traced once; a new `save` compiles anew."""
+    traced = []
+
+    def kinetic(q, qd, p):
+        traced.append(1)  # runs only while JAX traces
+        return 0.5 * p["m"] * qd @ qd
+
+    oscillator = jaxdyn.Lagrangian(kinetic, lambda q, p: 0.5 * p["k"] * q @ q)
+    first = jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 4.0}, t1=1.0)
+    count = len(traced)
+    second = jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0},
+                             t1=0.5, rtol=1e-9, atol=1e-9)
+    assert len(traced) == count
+    np.testing.assert_allclose(first.q[-1], np.cos(2.0), atol=1e-8)
+    np.testing.assert_allclose(second.q[-1], np.cos(1.5), atol=1e-7)
+    jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0}, t1=0.5,
+                    save="q")
+    assert len(traced) > count

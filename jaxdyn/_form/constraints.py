@@ -1,7 +1,7 @@
 """Constraints on any formulation: Lagrange's equations of the first kind (multipliers), their
 elimination into independent speeds, drift control and consistent states."""
 
-from typing import Callable
+from typing import Callable, ClassVar
 
 import equinox as eqx
 import jax
@@ -271,8 +271,7 @@ class Constrained(AbstractDynamics):
     def state_projection(self):
         return self.project if isinstance(self.stabilisation, Projection) else None
 
-    def saved_records(self):
-        return ("constraints",)
+    saved_records: ClassVar[tuple[str, ...]] = ("constraints",)
 
     def record(self, name, ts, q, u, p=None):  # name: "constraints", the only record
         return ConstraintRecord(multipliers=self.multipliers(ts, q, u, p),

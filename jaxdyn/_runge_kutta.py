@@ -1,0 +1,101 @@
+"""Explicit Runge–Kutta steps with their stages written out.
+
+diffrax runs the stages of a Runge–Kutta step as a loop (one iteration per stage, the tableau
+row picked by index). XLA writes such a loop out when its body is small: the hand-written
+equations of a double or elastic pendulum are small enough, equations formed by autodiff
+usually are not, and a loop iteration costs about as much as the equations of a small system
+(a Tsit5 step of the elastic pendulum: 0.6 µs written out, 1.2 µs as a loop). Writing the
+stages out in Python gives every system the straight-line step, with the same arithmetic: the
+same stages, tableau, error estimate and dense output as the wrapped diffrax solver.
+
+Reference: J. C. Butcher, Numerical Methods for Ordinary Differential Equations (2016), §23.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+
+
+class UnrolledStages(diffrax.AbstractWrappedSolver):
+    """A diffrax explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, Dopri8,
+    …) of an ODE, stepped with its stages written out.
+
+        k_i = h f(t₀ + c_i h, y₀ + Σ_{j<i} a_ij k_j),   y₁ = y₀ + Σ b_i k_i,
+        error = Σ (b_i − b̂_i) k_i
+
+    (diffrax's `b_error` holds the differences). A first-same-as-last tableau reuses the last
+    stage of a step as the first of the next, unless the state jumped (`made_jump`).
+    """
+
+    solver: diffrax.AbstractERK
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def __getattr__(self, name):
+        # Options a diffrax adjoint sets on Runge–Kutta solvers (ForwardMode replaces
+        # `scan_kind`) are the wrapped solver's own; they do not change written-out stages.
+        if name == "scan_kind":
+            return getattr(self.solver, name)
+        raise AttributeError(name)
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def init(self, terms, t0, t1, y0, args):
+        if not self.solver.tableau.fsal:
+            return None
+        # (first step, f at the end of the previous step): nothing to reuse yet.
+        return jnp.array(True), jax.tree_util.tree_map(jnp.zeros_like, y0)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        tableau = self.solver.tableau
+        control = terms.contr(t0, t1)
+        h = t1 - t0
+        if tableau.fsal:
+            first, f_last = solver_state
+            f0 = jax.lax.cond(first | made_jump, lambda: terms.vf(t0, y0, args),
+                              lambda: f_last)
+        else:
+            f0 = terms.vf(t0, y0, args)
+        stages = [terms.prod(f0, control)]
+        f = f0
+        for c, row in zip(tableau.c, tableau.a_lower):
+            y = _combine(y0, row, stages)
+            f = terms.vf(t0 + float(c) * h, y, args)
+            stages.append(terms.prod(f, control))
+        y1 = _combine(y0, tableau.b_sol, stages)
+        y_error = _combine(None, tableau.b_error, stages)
+        k = jax.tree_util.tree_map(lambda *ks: jnp.stack(ks), *stages)
+        dense_info = dict(y0=y0, y1=y1, k=k)
+        # First same as last: the last stage was evaluated at (t1, y1).
+        state = (jnp.array(False), f) if tableau.fsal else None
+        return y1, y_error, dense_info, state, diffrax.RESULTS.successful
+
+
+def _combine(start, weights, stages):
+    """start + Σ w_j k_j over the nonzero weights (start None: the sum alone)."""
+    total = start
+    for weight, stage in zip(weights, stages):
+        if weight != 0:
+            term = jax.tree_util.tree_map(lambda x, w=float(weight): w * x, stage)
+            total = term if total is None else jax.tree_util.tree_map(jnp.add, total, term)
+    return total
