@@ -24,6 +24,7 @@ from ._sensitivities import MAX_FORWARD, differentiable_size, with_sensitivities
 from ._solution import RESULTS, Solution
 from ._state import check_parameter_dtypes, check_vector, numbers_as_arrays, state_dtype
 from ._variational import AbstractStructurePreserving
+from ._wrapped_solver import AbstractForwardingSolver
 
 MAX_STEPS = (
     "The solver took the maximum number of steps (max_steps) before reaching t1: pass a "
@@ -645,41 +646,13 @@ def _diagnose(dynamics, p, factorisation, t, q, u, stalled, direction, span):
     return code, (t_fail, q_fail, u_fail)
 
 
-class _Projected(diffrax.AbstractWrappedSolver):
+class _Projected(AbstractForwardingSolver):
     """A diffrax solver whose every step ends with the dynamics' `state_projection` (drift
     control of constraints). The step's error estimate is the wrapped solver's, before the
     projection; the next step re-evaluates its first stage at the projected state
     (`made_jump`), as first-same-as-last solvers would otherwise reuse the unprojected one."""
 
     solver: diffrax.AbstractSolver
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def __getattr__(self, name):
-        # Options a diffrax adjoint sets on Runge–Kutta solvers (ForwardMode replaces
-        # `scan_kind`) are the wrapped solver's own.
-        if name == "scan_kind":
-            return getattr(self.solver, name)
-        raise AttributeError(name)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
 
     def init(self, terms, t0, t1, y0, args):
         return self.solver.init(terms, t0, t1, y0, args)

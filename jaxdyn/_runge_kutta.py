@@ -15,8 +15,10 @@ import diffrax
 import jax
 import jax.numpy as jnp
 
+from ._wrapped_solver import AbstractForwardingSolver
 
-class UnrolledStages(diffrax.AbstractWrappedSolver):
+
+class UnrolledStages(AbstractForwardingSolver):
     """A diffrax explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, Dopri8,
     …) of an ODE, stepped with its stages written out.
 
@@ -28,34 +30,6 @@ class UnrolledStages(diffrax.AbstractWrappedSolver):
     """
 
     solver: diffrax.AbstractERK
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def __getattr__(self, name):
-        # Options a diffrax adjoint sets on Runge–Kutta solvers (ForwardMode replaces
-        # `scan_kind`) are the wrapped solver's own; they do not change written-out stages.
-        if name == "scan_kind":
-            return getattr(self.solver, name)
-        raise AttributeError(name)
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
