@@ -475,6 +475,7 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
                          for name in RESULTS._name_to_item if name not in handled])
 
 
+@eqx.filter_jit  # traced once per solve's compilation, though the messages ask for it 6 times
 def _condition(dynamics, p, t, q, u):
     """κ(M) at one state, from its eigenvalues (∞ where M is not positive definite)."""
     return condition_number(jax.lax.stop_gradient(dynamics.form_equations(t, q, u, p)[0]))
