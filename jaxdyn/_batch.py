@@ -109,6 +109,30 @@ def simulate_batch(
     memory, not that of the results, which stay on the device), and `throw=True` reports the
     first failing member's index and initial state.
     """
+    _check_options(options, order)
+    dtype = state_dtype(q0, u0)
+    batched, shared, numbers = _split_members(q0, u0, p, batched_params, options, dtype)
+    size = _batch_size(batched)
+    mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
+    chunk = _chunk_size(size, mesh.devices.size, chunk_size, max_bytes, dynamics, batched,
+                        shared, options)
+    setup = (dynamics, mesh, tuple(sorted(options.items())))
+    if any(isinstance(x, jax.core.Tracer)
+           for x in jax.tree_util.tree_leaves((dynamics, batched, shared))):
+        return _staged(setup, batched, shared, size, chunk, throw)
+    permutation = None
+    if order == "cost":
+        permutation = _by_cost(dynamics, q0, u0, p, batched_params, chunk, devices, numbers,
+                               options, dtype)
+        batched = jax.tree_util.tree_map(lambda x: np.asarray(x)[permutation], batched)
+    solution = _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw,
+                                permutation)
+    if permutation is not None:
+        solution = jax.tree_util.tree_map(lambda x: x[np.argsort(permutation)], solution)
+    return solution
+
+
+def _check_options(options, order):
     unknown = set(options) - _OPTIONS
     if unknown:
         raise ValueError(f"simulate_batch got unknown keyword(s) {sorted(unknown)}; it takes "
@@ -117,7 +141,12 @@ def simulate_batch(
         raise TypeError("simulate_batch() missing the keyword argument 't1' (the end time).")
     if order not in ("given", "cost"):
         raise ValueError(f"order must be 'given' or 'cost', got {order!r}.")
-    dtype = state_dtype(q0, u0)
+
+
+def _split_members(q0, u0, p, batched_params, options, dtype):
+    """(batched, shared, numbers): the inputs with a leading batch axis, those shared by every
+    member (with the numbers of `options`, which are taken out of it, as arrays), and those
+    numbers as given."""
     q0, u0 = (x if isinstance(x, jax.core.Tracer) else np.asarray(x, dtype) for x in (q0, u0))
     for name, x in (("q0", q0), ("u0", u0)):
         if x.ndim not in (1, 2):
@@ -129,30 +158,25 @@ def simulate_batch(
     except ValueError as error:
         raise ValueError("batched_params must be True, False or a pytree prefix of p with "
                          f"bool leaves: {error}") from None
-    size = _batch_size(batched)
     numbers = {k: options.pop(k) for k in _NUMBERS if k in options}
-    shared = numbers_as_arrays((shared, numbers), dtype)
-    mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
-    width = mesh.devices.size
-    chunk = _chunk_size(size, width, chunk_size, max_bytes, dynamics, batched, shared, options)
+    return batched, numbers_as_arrays((shared, numbers), dtype), numbers
 
-    traced = any(isinstance(x, jax.core.Tracer)
-                 for x in jax.tree_util.tree_leaves((dynamics, batched, shared)))
-    if traced:
-        setup = (dynamics, mesh, tuple(sorted(options.items())))
-        return _staged(setup, batched, shared, size, chunk, throw)
 
-    setup = (dynamics, mesh, tuple(sorted(options.items())))
-    permutation = None
-    if order == "cost":  # a pilot solve counts each member's steps
-        pilot = simulate_batch(dynamics, q0, u0, p, batched_params=batched_params,
-                               chunk_size=chunk, devices=devices, throw=False, save="q",
-                               t0=numbers.get("t0", 0.0), t1=numbers["t1"],
-                               solver=diffrax.Tsit5(), rtol=PILOT_TOLERANCE[dtype.itemsize],
-                               atol=PILOT_TOLERANCE[dtype.itemsize],
-                               max_steps=options.get("max_steps", 16**4))
-        permutation = np.argsort(np.asarray(pilot.num_steps), kind="stable")
-        batched = jax.tree_util.tree_map(lambda x: np.asarray(x)[permutation], batched)
+def _by_cost(dynamics, q0, u0, p, batched_params, chunk, devices, numbers, options, dtype):
+    """The members ordered by cost: a pilot solve at a loose tolerance counts their steps."""
+    pilot = simulate_batch(dynamics, q0, u0, p, batched_params=batched_params,
+                           chunk_size=chunk, devices=devices, throw=False, save="q",
+                           t0=numbers.get("t0", 0.0), t1=numbers["t1"],
+                           solver=diffrax.Tsit5(), rtol=PILOT_TOLERANCE[dtype.itemsize],
+                           atol=PILOT_TOLERANCE[dtype.itemsize],
+                           max_steps=options.get("max_steps", 16**4))
+    return np.argsort(np.asarray(pilot.num_steps), kind="stable")
+
+
+def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permutation):
+    """The sharded solve of every chunk of members, gathered (in host memory when there are
+    several chunks or hosts), each chunk's failures reported as it finishes."""
+    dynamics, mesh, options = setup[0], setup[1], dict(setup[2])
     count = math.ceil(size / chunk)
     padded = _pad(batched, count * chunk)
     in_host = count > 1 or jax.process_count() > 1
@@ -176,11 +200,7 @@ def simulate_batch(
         for out, x in zip(jax.tree_util.tree_leaves(solution), jax.tree_util.tree_leaves(piece)):
             out[k * chunk:stop] = x[:stop - k * chunk]
         del piece
-    solution = jax.tree_util.tree_map(lambda x: x[:size], solution)
-    if permutation is not None:
-        inverse = np.argsort(permutation)
-        solution = jax.tree_util.tree_map(lambda x: x[inverse], solution)
-    return solution
+    return jax.tree_util.tree_map(lambda x: x[:size], solution)
 
 
 def _batch_size(batched):
