@@ -50,7 +50,6 @@ def filter_jit(fn):
         return jax.tree_util.tree_unflatten(
             entry.out_treedef, _merge(entry.out_static, entry.out_dynamic, out))
 
-    wrapper.clear_cache = cache.clear
     return wrapper
 
 
