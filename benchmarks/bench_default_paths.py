@@ -78,20 +78,19 @@ def systems():
     }
 
 
-def floor_solve(hand, n, t1, ts=None):
+def floor_solve(hand, n, t1, ts=None, adjoint=diffrax.RecursiveCheckpointAdjoint(), jit=True):
     """jax.jit of diffeqsolve on the hand-written equations, state y = [q; q̇]."""
     def field(t, y, p):
         return jnp.concatenate([y[n:], hand(t, y[:n], y[n:], p)])
 
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
 
-    @jax.jit
     def solve(y0, p):
         return diffrax.diffeqsolve(diffrax.ODETerm(field), SOLVER, 0.0, t1, None, y0, args=p,
-                                   saveat=saveat, max_steps=16**4,
+                                   saveat=saveat, max_steps=16**4, adjoint=adjoint,
                                    stepsize_controller=diffrax.PIDController(rtol=TOL,
                                                                              atol=TOL)).ys
-    return solve
+    return jax.jit(solve) if jit else solve
 
 
 def as_arrays(params):
@@ -224,11 +223,26 @@ def gradients(name, system, params, hand, q0, u0, rounds):
                                atol=TOL).q[-1]
 
     loss = lambda p: jnp.sum(forward(p) ** 2)  # noqa: E731
+    # The floor experiment: diffrax's adjoints on the hand-written equations, same solve.
+    y0 = jnp.concatenate([q0j, u0j])
+
+    def hand_forward(p, adjoint=diffrax.RecursiveCheckpointAdjoint()):
+        return floor_solve(hand, len(q0), 10.0, adjoint=adjoint, jit=False)(y0, p)[-1, :len(q0)]
+
+    hand_reverse = lambda p: jnp.sum(hand_forward(p) ** 2)  # noqa: E731
+    hand_tangents = lambda p: jnp.sum(hand_forward(p, diffrax.ForwardMode()) ** 2)  # noqa: E731
     times = interleaved({"forward": (jax.jit(forward), (p_arrays,)),
-                         "grad": (jax.jit(jax.grad(loss)), (p_arrays,))}, number=3,
-                        rounds=rounds)
+                         "grad": (jax.jit(jax.grad(loss)), (p_arrays,)),
+                         "hand": (jax.jit(hand_forward), (p_arrays,)),
+                         "hand reverse": (jax.jit(jax.grad(hand_reverse)), (p_arrays,)),
+                         "hand forward": (jax.jit(jax.jacfwd(hand_tangents)), (p_arrays,))},
+                        number=3, rounds=rounds)
     report("jax.grad(simulate) / forward simulate", name, times["grad"] / times["forward"],
            4.0)
+    print(f"       floor experiment, / the hand-written forward solve: jaxdyn's gradient "
+          f"{times['grad'] / times['hand']:.2f}x, diffrax on the hand-written equations: "
+          f"ForwardMode (jacfwd) {times['hand forward'] / times['hand']:.2f}x, checkpointed "
+          f"reverse {times['hand reverse'] / times['hand']:.2f}x")
     try:
         jax.jacfwd(forward)(p_arrays)
         works = "works"
