@@ -12,6 +12,7 @@ from ._form.constraints import (
     IndependentSpeeds as IndependentSpeeds,
     Projection as Projection,
 )
+from ._form.controlled import Controlled as Controlled
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane
@@ -24,7 +25,14 @@ from ._fit.parametrisation import (
     Unconstrained as Unconstrained,
 )
 from ._fit.uncertainty import Uncertainty as Uncertainty
+from ._equilibria import Equilibrium as Equilibrium, equilibrium as equilibrium
 from ._integrate import simulate as simulate
+from ._linearisation import (
+    LinearModel as LinearModel,
+    Modes as Modes,
+    linearise as linearise,
+    normal_modes as normal_modes,
+)
 from ._batch import simulate_batch as simulate_batch
 from ._stiffness import Stiffness as Stiffness, stiffness as stiffness
 from ._variational import (

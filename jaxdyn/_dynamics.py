@@ -76,6 +76,14 @@ class AbstractDynamics(eqx.Module):
         (drift control of constrained systems, `jaxdyn.Projection`)."""
         return None
 
+    def state_constraints(self, t, q, u, p=None):
+        """(φ(t, q), g(t, q, u)): the constraints on the states the system can take, position
+        constraints and velocity constraints (including φ̇), each zero on admissible states;
+        shapes (0,) when the coordinates and speeds are independent. Linearisation works in
+        the tangent space of these constraints."""
+        empty = jnp.zeros((0,), q.dtype)
+        return empty, empty
+
     def singular_constraints(self, t, q, u, p=None):
         """Whether, where the equations fail as singular, the constraints are the cause rather
         than the mass matrix (only constrained formulations have constraints)."""

@@ -18,6 +18,7 @@ from ._dynamics import (
 )
 from ._linalg import condition_number, factorise
 from ._compile import filter_jit
+from ._form.controlled import find_controlled, with_inputs
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
 from ._runge_kutta import UnrolledStages
 from ._sensitivities import MAX_FORWARD, differentiable_size, with_sensitivities
@@ -112,8 +113,9 @@ def simulate(
     max_steps: int | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
+    inputs=None,
 ) -> Solution:
-    """Integrate q̇ = K u, M u̇ = f from (t0, q0, u0) to t1.
+    """Integrate q̇ = K u, M u̇ = f (+ B r) from (t0, q0, u0) to t1.
 
     **Arguments:**
 
@@ -126,7 +128,8 @@ def simulate(
     - `save`: which of "q", "u", "qd" to save at `ts`; the others are None in the solution.
       Saving less interpolates and stores less in every step (and "qd" = K(q) u is only
       formed when asked for). For a `jaxdyn.Constrained` formulation, "constraints" also
-      saves the multipliers, constraint forces and violations (`Solution.constraints`).
+      saves the multipliers, constraint forces and violations (`Solution.constraints`); for
+      a `jaxdyn.Controlled` system, "inputs" saves the inputs r applied (`Solution.inputs`).
     - `solver`, `rtol`, `atol`, `dt0`, `stepsize_controller`: the diffrax solver and step-size
       control. Defaults: `Dopri8` (8th order) with a `PIDController` at rtol = atol = 1e-10 in
       float64 (1e-6 in float32, near what that precision can hold) and an automatically chosen
@@ -156,6 +159,10 @@ def simulate(
     - `throw`: raise on failure; if False, inspect `Solution.result` (NaN or inf in the
       initial state or parameters then gives `RESULTS.nonfinite_state_or_parameters` and NaN
       states, so that one bad member does not stop a vmapped batch).
+    - `inputs`: for a system with control inputs (`jaxdyn.Controlled`, also inside a
+      `Constrained`): an array r, a signal r(t) (a function of t, or a diffrax path such as
+      `diffrax.LinearInterpolation`) or a policy π(t, q, u, p); None keeps the system's own.
+      Derivatives flow through the inputs' arrays (a policy's weights held as module fields).
 
     **Returns:** a `jaxdyn.Solution`.
 
@@ -168,6 +175,8 @@ def simulate(
     `nonfinite_equations`).
     """
     dtype = state_dtype(q0, u0)
+    if inputs is not None:
+        dynamics = with_inputs(dynamics, inputs)
     if isinstance(solver, AbstractStructurePreserving):
         stepsize_controller = _fixed_steps(solver, rtol, atol, dt0, stepsize_controller)
     elif stepsize_controller is None:  # defaults filled in here, so that they are traced too
@@ -244,8 +253,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
                             controller_state=True)
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    # Counted with the inputs' arrays (a policy's weights): each may be differentiated.
     forward = (adjoint is None and not dense
-               and differentiable_size((q0, u0, p)) <= MAX_FORWARD)
+               and differentiable_size((q0, u0, p, _inputs_of(dynamics))) <= MAX_FORWARD)
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
             and (forward or isinstance(adjoint, diffrax.ForwardMode))):
         # The same steps, without a loop over the stages (2× faster on small systems). Not
@@ -292,11 +302,17 @@ def _simulate(dynamics, q0, u0, numbers, options):
         num_rejected_steps=solution.stats["num_rejected_steps"],
         dense=solution if dense else None,
         constraints=recorded.get("constraints"),
+        inputs=recorded.get("inputs"),
         layout=layout,
     )
 
 
 _STATE_QUANTITIES = ("q", "u", "qd")
+
+
+def _inputs_of(dynamics):
+    controlled = find_controlled(dynamics)
+    return None if controlled is None else controlled.inputs
 
 
 def _check_save(save, dynamics):
@@ -313,7 +329,7 @@ def _check_save(save, dynamics):
             raise ValueError(
                 f"save names {name!r}, which {type(dynamics).__name__} does not record: save "
                 f"must name some of {names} (a jaxdyn.Constrained formulation also records "
-                "'constraints').")
+                "'constraints', a jaxdyn.Controlled one 'inputs').")
 
 
 def _solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps, *,

@@ -58,6 +58,8 @@ class Solution(eqx.Module):
       solve failed).
     - `num_steps`, `num_accepted_steps`, `num_rejected_steps`: solver statistics.
     - `constraints`: a `ConstraintRecord` when `save` included "constraints", else None.
+    - `inputs`: the inputs r applied at `ts`, shape (k, number of inputs), when `save`
+      included "inputs" (a `jaxdyn.Controlled` system), else None.
     - `dense`: the underlying `diffrax.Solution` when `dense=True` was asked for, else None;
       use `evaluate`.
     """
@@ -72,6 +74,7 @@ class Solution(eqx.Module):
     num_rejected_steps: Int[Array, ""]
     dense: diffrax.Solution | None = None
     constraints: ConstraintRecord | None = None
+    inputs: Float[Array, "k r"] | None = None
     layout: Any = None  # how `dense` holds (q, u): `layout.split(y)` gives them
 
     def evaluate(self, t):

@@ -123,9 +123,11 @@ def _subspaces(tree):
     return subspaces, padded, columns
 
 
-def articulated_body_algorithm(tree, t, q, u, p):
+def articulated_body_algorithm(tree, t, q, u, p, applied=None):
     """(u̇, singular, nonfinite): the accelerations of `tree`, NaN where some D_i is singular
-    (a link whose joint moves nothing with inertia) or the forces are not finite."""
+    (a link whose joint moves nothing with inertia) or the forces are not finite. `applied`:
+    further generalized forces along the speeds (control inputs B r), added to the joint
+    forces."""
     dtype = q.dtype
     subspaces_np, padded_np, columns = _subspaces(tree)
     n, width = padded_np.shape
@@ -139,6 +141,8 @@ def articulated_body_algorithm(tree, t, q, u, p):
     elastic = -jax.grad(tree.elastic_energy, argnums=1)(t, q, p)
     _, transpose = jax.vjp(lambda u: tree.coordinate_rates(t, q, u, p), u)
     tau = tree.joint_forces(t, q, u, p) + transpose(elastic)[0]
+    if applied is not None:
+        tau = tau + applied
     tau_links = jnp.zeros((n, width), dtype).at[link_of, column_of].set(tau)
 
     rotation, origin, omega_j, velocity_j = tree.joint_motion(q, u)

@@ -1,7 +1,7 @@
 """Constraints on any formulation: Lagrange's equations of the first kind (multipliers), their
 elimination into independent speeds, drift control and consistent states."""
 
-from typing import Callable, ClassVar
+from typing import Callable
 
 import equinox as eqx
 import jax
@@ -253,6 +253,10 @@ class Constrained(AbstractDynamics):
             t, q, u, p, small=small)
         return accelerations, mass_singular | constraints_singular, nonfinite
 
+    def state_constraints(self, t, q, u, p=None):
+        """(φ(t, q), g(t, q, u)): the holonomic constraints and every velocity constraint."""
+        return self._phi(t, q, p), self._velocity_residual(t, q, u, p)
+
     def singular_constraints(self, t, q, u, p=None):
         t, q, u = self._check(t, q, u)
         _, _, _, mass_singular, constraints_singular, _ = self._solve(t, q, u, p, small=False)
@@ -271,9 +275,13 @@ class Constrained(AbstractDynamics):
     def state_projection(self):
         return self.project if isinstance(self.stabilisation, Projection) else None
 
-    saved_records: ClassVar[tuple[str, ...]] = ("constraints",)
+    @property
+    def saved_records(self):
+        return ("constraints", *self.dynamics.saved_records)
 
-    def record(self, name, ts, q, u, p=None):  # name: "constraints", the only record
+    def record(self, name, ts, q, u, p=None):
+        if name != "constraints":  # the constrained formulation's own (a Controlled's inputs)
+            return self.dynamics.record(name, ts, q, u, p)
         return ConstraintRecord(multipliers=self.multipliers(ts, q, u, p),
                                 constraint_forces=self.constraint_forces(ts, q, u, p),
                                 position_violation=self.position_violation(ts, q, u, p),
@@ -429,6 +437,10 @@ class IndependentSpeeds(AbstractDynamics):
     def user_functions(self, t, q, v, p=None):
         return self.constrained.user_functions(t, q, self._speeds(t, q, v, p), p)
 
+    def state_constraints(self, t, q, v, p=None):
+        """(φ(t, q), none): the velocity constraints hold by construction of the speeds."""
+        return self.constrained._phi(t, q, p), jnp.zeros((0,), q.dtype)
+
     def state_projection(self):
         if not isinstance(self.constrained.stabilisation, Projection):
             return None
@@ -439,6 +451,14 @@ class IndependentSpeeds(AbstractDynamics):
             return q, v
 
         return project
+
+    @property
+    def saved_records(self):
+        return self.constrained.saved_records
+
+    def record(self, name, ts, q, v, p=None):
+        u = jax.vmap(self._speeds, in_axes=(0, 0, 0, None))(ts, q, v, p)
+        return self.constrained.record(name, ts, q, u, p)
 
     @public_method("(),(n),(k)->(m)")
     def speeds(self, t, q, v, p=None):

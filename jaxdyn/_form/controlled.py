@@ -1,0 +1,223 @@
+"""Control inputs: generalized forces B(q, p) r added to a formulation's equations."""
+
+import inspect
+from typing import Any, Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._convention import CONFIGURATION_ARGS, call
+from .._dynamics import AbstractDynamics, accelerations_from_equations
+from .._state import check_vector, public_method
+from .articulated import ArticulatedBody, articulated_body_algorithm
+
+
+class Controlled(AbstractDynamics):
+    r"""A formulation driven by control inputs r (k,) through an input map B:
+
+        q̇ = K u,        M u̇ = f + B(t, q, p) r,
+
+    B r being generalized forces along the wrapped formulation's speeds u (for Lagrange's
+    equations, forces conjugate to q: δW = (B r)·δq). An actuated coordinate is a column of the
+    identity; a force F on a point of a body is the column Jᵀ of that point's velocity Jacobian
+    ∂v/∂u (Kane and Levinson, *Dynamics: Theory and Applications*, 1985, ch. 4: generalized
+    active forces).
+
+    The inputs are carried by the system (`with_inputs`, or `simulate(..., inputs=...)`):
+
+    - an array r (k,): constant inputs (the default is r = 0);
+    - a signal r(t): a function of t alone, or a `diffrax` path such as
+      ``diffrax.LinearInterpolation(ts, rs)`` or ``diffrax.backward_hermite_coefficients``
+      with ``diffrax.CubicInterpolation`` (samples of a measured or planned input);
+    - a state-feedback policy r = π(t, q, u, p): any pure JAX function, e.g. an equinox
+      module (a neural network); pass arrays it depends on as module fields (``eqx.Partial``),
+      not as closed-over values, so that `jax.grad` reaches them.
+
+    Every method of the wrapped formulation's protocol applies with the inputs in force. To
+    constrain a controlled system, constrain this wrapper: ``Constrained(Controlled(...), ...)``
+    (the multipliers then include the inputs' effect).
+
+    **Arguments:**
+
+    - `dynamics`: the formulation driven (`Lagrangian`, `GibbsAppell`, `Kane`,
+      `ArticulatedBody`, `IndependentSpeeds`, …).
+    - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`), or a sequence of the
+      indices of the actuated speeds (B = columns of the identity: one input per index).
+    - `inputs`: as above; None for r = 0.
+    - `time_dependent`: if True, B takes t first.
+
+    **Example** (a cart-pole pushed on the cart):
+
+        plant = jaxdyn.Controlled(jaxdyn.Lagrangian(T, V), input_map=[0])
+        sol = jaxdyn.simulate(plant, q0, u0, p, t1=5.0, inputs=lambda t, q, u, p: -K @ x)
+    """
+
+    dynamics: AbstractDynamics
+    input_map: Callable | None
+    actuated: tuple[int, ...] | None = eqx.field(static=True)
+    inputs: Any = None
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def __init__(self, dynamics, input_map, inputs=None, *, time_dependent=False):
+        if not isinstance(dynamics, AbstractDynamics):
+            raise ValueError("Controlled needs a jaxdyn formulation (AbstractDynamics) to "
+                             f"drive, got {type(dynamics).__name__}.")
+        if callable(input_map):
+            self.input_map, self.actuated = input_map, None
+        else:
+            indices = tuple(int(i) for i in np.atleast_1d(np.asarray(input_map)))
+            if not indices or len(set(indices)) != len(indices) or min(indices) < 0:
+                raise ValueError("input_map must be B(q, p) → (m, k) or distinct non-negative "
+                                 f"indices of actuated speeds, got {input_map!r}.")
+            self.input_map, self.actuated = None, indices
+        self.dynamics = dynamics
+        self.inputs = inputs
+        self.time_dependent = time_dependent
+
+    def with_inputs(self, inputs) -> "Controlled":
+        """A copy driven by `inputs` (an array, a signal r(t) or path, or a policy
+        π(t, q, u, p))."""
+        return Controlled(self.dynamics, self.input_map if self.actuated is None
+                          else self.actuated, inputs, time_dependent=self.time_dependent)
+
+    # -- the inputs -----------------------------------------------------------------------------
+
+    def _input_matrix(self, t, q, p, num_speeds):
+        if self.actuated is not None:
+            if max(self.actuated) >= num_speeds:
+                raise ValueError(f"input_map names speed {max(self.actuated)}, but the system "
+                                 f"has {num_speeds} speeds.")
+            return jnp.eye(num_speeds, dtype=q.dtype)[:, list(self.actuated)]
+        matrix = jnp.asarray(call(self.input_map, "input map B", self.time_dependent,
+                                  CONFIGURATION_ARGS, t, q, p))
+        if matrix.ndim != 2 or matrix.shape[0] != num_speeds:
+            raise ValueError(f"input map B must return an array of shape (m, k) with m = "
+                             f"{num_speeds} speeds, got shape {matrix.shape}.")
+        return matrix.astype(q.dtype)
+
+    def num_inputs(self, q, u, p=None) -> int:
+        """k, the number of inputs (read from B's shape)."""
+        if self.actuated is not None:
+            return len(self.actuated)
+        t = jnp.zeros((), jnp.asarray(q).dtype)
+        return jax.eval_shape(lambda q, u: self._input_matrix(t, q, p, u.shape[0]),
+                              jnp.asarray(q), jnp.asarray(u)).shape[1]
+
+    def _inputs_at(self, t, q, u, p):
+        """r at one state, checked against B's shape."""
+        k = self.num_inputs(q, u, p)
+        inputs = self.inputs
+        if inputs is None:
+            return jnp.zeros((k,), q.dtype)
+        if isinstance(inputs, diffrax.AbstractPath):
+            value = inputs.evaluate(t)
+        elif callable(inputs):
+            value = inputs(t) if _takes_time_only(inputs) else inputs(t, q, u, p)
+        else:
+            value = inputs
+        value = jnp.asarray(value)
+        if value.shape != (k,):
+            raise ValueError(f"the inputs r must have shape ({k},) (the input map B has {k} "
+                             f"columns), got shape {value.shape}.")
+        if not jnp.issubdtype(value.dtype, jnp.inexact):
+            value = value.astype(q.dtype)
+        return value.astype(q.dtype)
+
+    def applied(self, t, q, u, p):
+        """B r at one state: the generalized forces of the inputs along the speeds."""
+        return self._input_matrix(t, q, p, u.shape[0]) @ self._inputs_at(t, q, u, p)
+
+    @public_method("(),(n),(m)->(m,k)")
+    def input_matrix(self, t, q, u, p=None):
+        """B(t, q, p), the input map: generalized forces along the speeds per unit input."""
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        return self._input_matrix(jnp.asarray(t, q.dtype), q, p, u.shape[0])
+
+    @public_method("(),(n),(m)->(k)")
+    def input_values(self, t, q, u, p=None):
+        """r(t, q, u): the inputs in force at a state."""
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        return self._inputs_at(jnp.asarray(t, q.dtype), q, u, p)
+
+    # -- AbstractDynamics -----------------------------------------------------------------------
+
+    @property
+    def saved_records(self):
+        return ("inputs", *self.dynamics.saved_records)
+
+    def record(self, name, ts, q, u, p=None):
+        if name == "inputs":
+            return jax.vmap(self._inputs_at, in_axes=(0, 0, 0, None))(ts, q, u, p)
+        return self.dynamics.record(name, ts, q, u, p)
+
+    def coordinate_rates(self, t, q, u, p=None):
+        return self.dynamics.coordinate_rates(t, q, u, p)
+
+    def form_equations(self, t, q, u, p=None):
+        """(M, f + B r)."""
+        mass_matrix, forcing = self.dynamics.form_equations(t, q, u, p)
+        return mass_matrix, forcing + self.applied(jnp.asarray(t, q.dtype), q, u, p)
+
+    def form_accelerations(self, t, q, u, p=None, *, small):
+        if isinstance(self.dynamics, ArticulatedBody):  # B r joins the joint forces
+            t = jnp.asarray(t, q.dtype)
+            return articulated_body_algorithm(self.dynamics.tree, t, q, u, p,
+                                              applied=self.applied(t, q, u, p))
+        return accelerations_from_equations(self, t, q, u, p, small=small)
+
+    def energy_terms(self, t, q, u, p=None):
+        return self.dynamics.energy_terms(t, q, u, p)
+
+    def user_functions(self, t, q, u, p=None):
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        return self.dynamics.user_functions(t, q, u, p), self.applied(
+            jnp.asarray(t, q.dtype), q, u, p)
+
+    def state_projection(self):
+        return self.dynamics.state_projection()
+
+    def singular_constraints(self, t, q, u, p=None):
+        return self.dynamics.singular_constraints(t, q, u, p)
+
+    def state_constraints(self, t, q, u, p=None):
+        return self.dynamics.state_constraints(t, q, u, p)
+
+
+def _takes_time_only(fn) -> bool:
+    """Whether `fn` is a signal r(t) (one positional argument) rather than π(t, q, u, p)."""
+    try:
+        parameters = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    positional = [x for x in parameters
+                  if x.kind in (x.POSITIONAL_ONLY, x.POSITIONAL_OR_KEYWORD)]
+    variadic = any(x.kind == x.VAR_POSITIONAL for x in parameters)
+    return len(positional) == 1 and not variadic
+
+
+def with_inputs(dynamics: AbstractDynamics, inputs) -> AbstractDynamics:
+    """`dynamics` with every `Controlled` inside it (a constrained controlled system holds
+    one) driven by `inputs`; an error if there is none."""
+    found = []
+
+    def replace(x):
+        if isinstance(x, Controlled):
+            found.append(x)
+            return x.with_inputs(inputs)
+        return x
+
+    out = jax.tree_util.tree_map(replace, dynamics, is_leaf=lambda x: isinstance(x, Controlled))
+    if not found:
+        raise ValueError(f"{type(dynamics).__name__} declares no inputs: wrap the formulation "
+                         "as jaxdyn.Controlled(dynamics, input_map) to drive it.")
+    return out
+
+
+def find_controlled(dynamics) -> Controlled | None:
+    """The `Controlled` inside `dynamics` (itself, or the one a constraint wraps), or None."""
+    found = [x for x in jax.tree_util.tree_leaves(
+        dynamics, is_leaf=lambda x: isinstance(x, Controlled)) if isinstance(x, Controlled)]
+    return found[0] if found else None
