@@ -296,7 +296,8 @@ def normal_modes(dynamics: AbstractDynamics, t, q, p=None, r=None) -> Modes:
     zero = squared == 0
     root = jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, jnp.abs(squared))))
     frequency = jnp.sign(squared) * root
-    values = jnp.where(squared >= 0, 1j * root, root + 0j)
+    zeros = jnp.zeros_like(root)
+    values = jnp.where(squared >= 0, jax.lax.complex(zeros, root), jax.lax.complex(root, zeros))
     return Modes(eigenvalues=values, natural_frequencies=frequency,
                  damping_ratios=jnp.zeros_like(frequency), damped_frequencies=frequency,
                  shapes=shapes, conjugate=jnp.zeros(frequency.shape, bool))
