@@ -320,8 +320,8 @@ def test_inputs_as_constants_signals_and_policies():
     def policy(t, q, u, p):
         return -k * q - c * u
 
-    damped = jaxdyn.simulate(plant, jnp.array([1.0]), jnp.zeros(1), inputs=policy, t1=3.0,
-                             ts=ts, save=("q", "u", "inputs"))
+    damped = jaxdyn.simulate(plant, jnp.array([1.0]), jnp.zeros(1), inputs=policy,
+                             **dict(kw, save=("q", "u", "inputs")))
     wn, zeta = np.sqrt(k / m), c / (2 * np.sqrt(k * m))
     wd = wn * np.sqrt(1 - zeta**2)
     expected = np.exp(-zeta * wn * ts) * (np.cos(wd * ts) + zeta * wn / wd * np.sin(wd * ts))
