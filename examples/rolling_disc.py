@@ -50,7 +50,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # mechanics wants float64; jaxdyn never sets it
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -193,15 +192,9 @@ print(f"analytic critical rolling rate ω_c = sqrt(g / 3r) = {critical:.6f} rad/
       f"(speed {r * critical:.4f} m/s)")
 
 
-@eqx.filter_jit
-def jacobian(dyn, omega0):
-    """Jacobian of (q̇, u̇) in (q, u) at upright straight rolling with φ̇ = ω₀."""
-    def field(y):
-        q, u = y[:5], y[5:]
-        return jnp.concatenate([kinematic_map(q, P) @ u, dyn.accelerations(0.0, q, u, P)])
-
-    y = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, omega0])
-    return jax.jacfwd(field)(y)
+def linearised(dyn, omega0):
+    """The linear model about upright straight rolling with φ̇ = ω₀ (jaxdyn.linearise)."""
+    return jaxdyn.linearise(dyn, 0.0, jnp.zeros(5), jnp.array([0.0, 0.0, omega0]), P)
 
 
 for factor in (0.8, 1.25, 2.0):
@@ -209,10 +202,11 @@ for factor in (0.8, 1.25, 2.0):
     k_lean = ((C + m * r**2) * C * omega0**2 / A - m * g * r) / (A + m * r**2)
     line = f"ω₀ = {factor:4.2f} ω_c: analytic λ² = {-k_lean:+.8f};"
     for name, dyn in FORMULATIONS.items():
-        eig = np.linalg.eigvals(np.asarray(jacobian(dyn, omega0)))
+        model = linearised(dyn, omega0)
+        eig = np.asarray(model.eigenvalues())
         lam = eig[np.argmax(np.abs(eig))]
-        line += f" {name} λ² = {complex(lam**2).real:+.8f}"
-    print(line + ("  (unstable)" if k_lean < 0 else "  (stable)"))
+        line += f" {name} λ² = {complex(lam**2).real:+.8f} ({model.stability()})"
+    print(line)
 
 # -- 4. A wobbling motion, both formulations -----------------------------------------------
 rule("Wobbling motion, 10 s, Dopri8 rtol = atol = 1e-10, both formulations")

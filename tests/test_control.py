@@ -370,3 +370,43 @@ def test_input_errors_name_the_problem():
     with pytest.raises(RuntimeError, match="linearisation is not finite"):
         jaxdyn.linearise(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * q[0] ** 2 * qd[0] ** 2),
                          0.0, jnp.zeros(1), jnp.zeros(1))
+
+
+def test_rolling_disc_stability_boundary():
+    """A rolling disc (nonholonomic, linearised in its independent speeds (ψ̇, θ̇, φ̇)) upright
+    at rolling rate ω₀: the lean obeys (A + m r²) θ̈ = −[(C + m r²) C ω₀²/A − m g r] θ,
+    stable above ω₀² = g / (3 r) (Gibbs–Appell and Kane)."""
+    from jaxdyn.rotations import euler_angles, rotation_x, rotation_z
+
+    p = {"m": 2.0, "r": 0.15, "g": 9.81}
+    m, r, g = p["m"], p["r"], p["g"]
+    a, c = m * r**2 / 4, m * r**2 / 2
+
+    def centre(q, p):
+        up = rotation_z(q[2]) @ rotation_x(q[3]) @ jnp.array([0.0, 0.0, 1.0])
+        return jnp.array([q[0], q[1], 0.0]) + p["r"] * up
+
+    def kinematic_map(q, p):  # rolling without slipping: ẋ = r φ̇ cos ψ, ẏ = r φ̇ sin ψ
+        zero, one = jnp.zeros_like(q[2]), jnp.ones_like(q[2])
+        return jnp.array([[zero, zero, p["r"] * jnp.cos(q[2])],
+                          [zero, zero, p["r"] * jnp.sin(q[2])],
+                          [one, zero, zero], [zero, one, zero], [zero, zero, one]])
+
+    disc = jaxdyn.RigidBody(
+        mass=lambda p: p["m"],
+        inertia=lambda p: jnp.diag(jnp.array([0.25, 0.5, 0.25])) * p["m"] * p["r"] ** 2,
+        position=centre, orientation=lambda q, p: euler_angles(q[2:5], "zxy"))
+    system = jaxdyn.MultibodySystem([disc], gravity=lambda p: jnp.array([0.0, 0.0, -p["g"]]))
+    critical = np.sqrt(g / (3 * r))
+    for form in (jaxdyn.GibbsAppell, jaxdyn.Kane):
+        dynamics = form.from_system(system, kinematic_map)
+        for factor, verdict in ((0.8, "unstable"), (1.25, "marginally stable")):
+            omega0 = factor * critical
+            model = jaxdyn.linearise(dynamics, 0.0, jnp.zeros(5),
+                                     jnp.array([0.0, 0.0, omega0]), p)
+            assert model.A.shape == (8, 8)
+            assert model.stability() == verdict
+            lean = ((c + m * r**2) * c * omega0**2 / a - m * g * r) / (a + m * r**2)
+            values = np.asarray(model.eigenvalues())
+            largest = values[np.argmax(np.abs(values))]
+            np.testing.assert_allclose((largest**2).real, -lean, rtol=1e-10)
