@@ -14,6 +14,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._errors import error_if, reports_state
+from ._form.controlled import with_inputs
 from ._integrate import simulate
 from ._solution import RESULTS, Solution
 from ._state import numbers_as_arrays, state_dtype
@@ -109,6 +110,9 @@ def simulate_batch(
     memory, not that of the results, which stay on the device), and `throw=True` reports the
     first failing member's index and initial state.
     """
+    inputs = options.pop("inputs", None)
+    if inputs is not None:  # shared by the members (a policy sees each member's state)
+        dynamics = with_inputs(dynamics, inputs)
     _check_options(options, order)
     dtype = state_dtype(q0, u0)
     batched, shared, numbers = _split_members(q0, u0, p, batched_params, options, dtype)

@@ -410,3 +410,18 @@ def test_rolling_disc_stability_boundary():
             values = np.asarray(model.eigenvalues())
             largest = values[np.argmax(np.abs(values))]
             np.testing.assert_allclose((largest**2).real, -lean, rtol=1e-10)
+
+
+def test_batch_under_a_policy():
+    """simulate_batch with a state-feedback policy: each member the damped oscillator's
+    closed form x(t) = x₀ e^{−ζω t}(cos ω_d t + ζω/ω_d sin ω_d t)."""
+    m, k, c = 2.0, 8.0, 1.0
+    plant = jaxdyn.Controlled(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd), [0])
+    x0 = jnp.linspace(-1.0, 1.0, 5)[:, None]
+    solution = jaxdyn.simulate_batch(plant, x0, jnp.zeros_like(x0), t1=2.0, rtol=1e-12,
+                                     atol=1e-12, inputs=lambda t, q, u, p: -k * q - c * u)
+    wn, zeta = np.sqrt(k / m), c / (2 * np.sqrt(k * m))
+    wd = wn * np.sqrt(1 - zeta**2)
+    expected = np.exp(-zeta * wn * 2.0) * (np.cos(wd * 2.0) + zeta * wn / wd * np.sin(wd * 2.0))
+    np.testing.assert_allclose(solution.q[:, -1, 0], np.asarray(x0[:, 0]) * expected,
+                               rtol=1e-9, atol=1e-12)
