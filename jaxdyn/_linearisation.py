@@ -177,13 +177,8 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
         raise ValueError(f"r must have shape ({controlled.num_inputs(q, u, p)},) (the input "
                          f"map's columns), got {r.shape}.")
 
-    def field(x, r):
-        driven = dynamics if controlled is None else with_inputs(dynamics, r)
-        rates, accelerations, _, _ = equations_of_motion(driven, t, x[:n], x[n:], p)
-        return jnp.concatenate([rates, accelerations])
-
     x = jnp.concatenate([q, u])
-    a_full, b_full = jax.jacfwd(field, argnums=(0, 1))(x, r)
+    a_full, b_full = state_jacobians(dynamics, t, q, u, p, r)
     basis, selection, num_coordinates = _tangent_space(dynamics, t, q, u, p, independent)
     a, b = selection @ a_full @ basis, selection @ b_full
     if output is None:
@@ -198,6 +193,20 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
                        num_q=n,
                        independent=None if independent is None else tuple(
                            int(i) for i in independent))
+
+
+@eqx.filter_jit  # traced once per system and shapes
+def state_jacobians(dynamics, t, q, u, p, r):
+    """(∂F/∂x, ∂F/∂r) of ẋ = F(x, r) = [q̇; u̇], x = [q; u], by forward mode; `r` of shape
+    (0,) for a system without inputs."""
+    n = q.shape[0]
+
+    def field(x, r):
+        driven = dynamics if r.shape[0] == 0 else with_inputs(dynamics, r)
+        rates, accelerations, _, _ = equations_of_motion(driven, t, x[:n], x[n:], p)
+        return jnp.concatenate([rates, accelerations])
+
+    return jax.jacfwd(field, argnums=(0, 1))(jnp.concatenate([q, u]), r)
 
 
 def _tangent_space(dynamics, t, q, u, p, independent):

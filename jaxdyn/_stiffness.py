@@ -3,11 +3,11 @@ solver they call for."""
 
 import diffrax
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._dynamics import AbstractDynamics, equations_of_motion
+from ._dynamics import AbstractDynamics
+from ._linearisation import state_jacobians
 from ._state import check_vector, numbers_as_arrays, state_dtype
 
 # Eigenvalues below this fraction of the largest are taken as zero (rigid-body and cyclic
@@ -91,7 +91,8 @@ def stiffness(dynamics: AbstractDynamics, t, q, u, p=None, *,
     dtype = state_dtype(q, u)
     q, u = check_vector(q, "q"), check_vector(u, "u")
     t, p = numbers_as_arrays((t, p), dtype)
-    jacobian = np.asarray(_jacobian(dynamics, jnp.asarray(t, dtype), q, u, p))
+    jacobian = np.asarray(state_jacobians(dynamics, jnp.asarray(t, dtype), q, u, p,
+                                          jnp.zeros((0,), dtype))[0])
     if not np.all(np.isfinite(jacobian)):
         raise ValueError("The linearised equations of motion are not finite at this state (a "
                          "singular mass matrix, or a non-finite force): no stiffness to "
@@ -107,14 +108,3 @@ def stiffness(dynamics: AbstractDynamics, t, q, u, p=None, *,
     damped = bool(np.all(-eigenvalues[fast].real > 0.1 * magnitudes[fast]))
     return Stiffness(eigenvalues=eigenvalues, fastest=fastest, slowest=slowest, ratio=ratio,
                      stiff=bool(ratio >= threshold), damped=damped)
-
-
-@eqx.filter_jit
-def _jacobian(dynamics, t, q, u, p):
-    n = q.shape[0]
-
-    def field(y):
-        rates, accelerations, _, _ = equations_of_motion(dynamics, t, y[:n], y[n:], p)
-        return jnp.concatenate([rates, accelerations])
-
-    return jax.jacfwd(field)(jnp.concatenate([q, u]))
