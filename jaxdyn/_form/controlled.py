@@ -106,9 +106,9 @@ class Controlled(AbstractDynamics):
         return jax.eval_shape(lambda q, u: self._input_matrix(t, q, p, u.shape[0]),
                               jnp.asarray(q), jnp.asarray(u)).shape[1]
 
-    def _inputs_at(self, t, q, u, p):
-        """r at one state, checked against B's shape."""
-        k = self.num_inputs(q, u, p)
+    def _inputs_at(self, t, q, u, p, k=None):
+        """r at one state, checked against B's k columns (read from B when not given)."""
+        k = self.num_inputs(q, u, p) if k is None else k
         inputs = self.inputs
         if inputs is None:
             return jnp.zeros((k,), q.dtype)
@@ -122,13 +122,12 @@ class Controlled(AbstractDynamics):
         if value.shape != (k,):
             raise ValueError(f"the inputs r must have shape ({k},) (the input map B has {k} "
                              f"columns), got shape {value.shape}.")
-        if not jnp.issubdtype(value.dtype, jnp.inexact):
-            value = value.astype(q.dtype)
         return value.astype(q.dtype)
 
     def applied(self, t, q, u, p):
         """B r at one state: the generalized forces of the inputs along the speeds."""
-        return self._input_matrix(t, q, p, u.shape[0]) @ self._inputs_at(t, q, u, p)
+        matrix = self._input_matrix(t, q, p, u.shape[0])
+        return matrix @ self._inputs_at(t, q, u, p, matrix.shape[1])
 
     @public_method("(),(n),(m)->(m,k)")
     def input_matrix(self, t, q, u, p=None):
