@@ -13,6 +13,8 @@ from ._form.constraints import (
     Projection as Projection,
 )
 from ._form.controlled import Controlled as Controlled
+from ._form.controlled import ForceInput as ForceInput
+from ._form.controlled import TorqueInput as TorqueInput
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane

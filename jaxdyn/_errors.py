@@ -147,22 +147,25 @@ def check_static_indexing(fn, *args):
     """Raise if `fn(*args)` indexes an array out of bounds with a static index.
 
     JAX clamps out-of-range indices, so a callback written for more coordinates than it is
-    given (``qd[1]`` with one coordinate) would silently read the wrong entry. Tracing `fn`
-    under `checkify` with compile-time evaluation computes the bounds checks of static indices
-    at trace time (their operands are constants); checks that depend on traced values stay
-    symbolic and are skipped. `fn` should be cheap (the user callbacks alone, no derivatives):
-    what it stages is unused and dropped by XLA.
+    given (``qd[1]`` with one coordinate) would silently read the wrong entry. On concrete
+    arguments `fn` runs once under `checkify`'s index checks (a small compiled program, cached
+    per system). Under an outer trace, compile-time evaluation computes the bounds checks of
+    static indices at trace time (their operands are constants); checks that depend on traced
+    values stay symbolic and are skipped. `fn` should be cheap (the user callbacks alone, no
+    derivatives): what it stages is unused and dropped by XLA.
     """
     leaves = jax.tree_util.tree_leaves((fn, args))
-    with jax.ensure_compile_time_eval():
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        with jax.ensure_compile_time_eval():
             error = _checked(fn, args)
-        else:  # an eager call: trace it (cached per system) so that the checks are formed
-            error = _checked_jit(fn, args)
-        try:
-            message = error.get()
-        except jax.errors.ConcretizationTypeError:  # depends on traced values
-            return
+            try:
+                message = error.get()
+            except jax.errors.ConcretizationTypeError:  # depends on traced values
+                return
+    else:
+        # An eager call: one small compiled program (cached per system), not compile-time
+        # evaluation, which would run (and compile) every constant operation one at a time.
+        message = _checked_jit(fn, args).get()
     if message is not None:
         raise ValueError(
             f"A callback indexes past the end of its input: {message.strip()} Check that the "

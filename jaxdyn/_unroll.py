@@ -586,8 +586,10 @@ def _constant_array(x):
     return np.asarray(x.tolist(), dtype=dtype).reshape(x.shape)
 
 
-# Data movement with indices known at trace time (static indexing): run the primitive on the
-# positions of the elements to find where each one goes.
+# Data movement with indices known at trace time (static indexing): find where each element
+# goes by applying the primitive to the elements' positions, in NumPy for the gathers and
+# slices that indexing produces (no XLA program compiled per indexing pattern), by the
+# primitive itself otherwise.
 _MOVED = {"gather": (0,), "dynamic_slice": (0,), "scatter": (0, 2), "dynamic_update_slice": (0, 1)}
 
 
@@ -604,14 +606,83 @@ def _by_position(eqn, ins):
             if constant is None:
                 return None
             arrays.append(constant)
-    with jax.ensure_compile_time_eval():
-        target = np.asarray(eqn.primitive.bind(*map(jnp.asarray, arrays), **eqn.params))
-    if (target == 0).any():  # out of bounds: keep the primitive's own semantics
+    rule = _POSITIONS.get(eqn.primitive.name)
+    if rule is None:
+        with jax.ensure_compile_time_eval():
+            target = np.asarray(eqn.primitive.bind(*map(jnp.asarray, arrays), **eqn.params))
+    else:
+        target = rule(eqn.params, *arrays)
+    if target is None or (target == 0).any():  # out of bounds: the primitive's own semantics
         return None
     out = np.empty(target.shape, dtype=object)
     for index in np.ndindex(target.shape):
         out[index] = pool[target[index] - 1]
     return out
+
+
+def _clamped_starts(starts, shape, sizes):
+    """XLA's clamping of slice starts: into [0, dim − size]."""
+    return [int(min(max(int(s), 0), d - z)) for s, d, z in zip(starts, shape, sizes)]
+
+
+def _dynamic_slice_positions(params, operand, *starts):
+    sizes = params["slice_sizes"]
+    begin = _clamped_starts(starts, operand.shape, sizes)
+    return operand[tuple(slice(b, b + z) for b, z in zip(begin, sizes))]
+
+
+def _dynamic_update_slice_positions(params, operand, update, *starts):
+    begin = _clamped_starts(starts, operand.shape, update.shape)
+    out = operand.copy()
+    out[tuple(slice(b, b + z) for b, z in zip(begin, update.shape))] = update
+    return out
+
+
+def _gather_positions(params, operand, indices):
+    """XLA's gather (operation semantics, index vector in the last dimension of `indices`),
+    element by element; None where a mode other than clamping or in-bounds is asked for."""
+    numbers, sizes = params["dimension_numbers"], params["slice_sizes"]
+    mode = params["mode"]
+    fill = mode == jax.lax.GatherScatterMode.FILL_OR_DROP
+    if mode not in (jax.lax.GatherScatterMode.CLIP, jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS,
+                    jax.lax.GatherScatterMode.FILL_OR_DROP):
+        return None
+    shape = numbers.offset_dims
+    out_shape = None
+    batch_shape = indices.shape[:-1]
+    offset_operand_dims = [d for d in range(operand.ndim)
+                           if d not in numbers.collapsed_slice_dims
+                           and d not in numbers.operand_batching_dims]
+    rank = len(batch_shape) + len(offset_operand_dims)
+    batch_dims = [d for d in range(rank) if d not in shape]
+    out_shape = [0] * rank
+    for d, b in zip(batch_dims, batch_shape):
+        out_shape[d] = b
+    for d, o in zip(shape, offset_operand_dims):
+        out_shape[d] = sizes[o]
+    out = np.zeros(out_shape, dtype=operand.dtype)
+    for index in np.ndindex(*out_shape):
+        batch = tuple(index[d] for d in batch_dims)
+        vector = indices[batch]
+        start = [0] * operand.ndim
+        for k, d in enumerate(numbers.start_index_map):
+            start[d] = int(vector[k])
+        for d, b in zip(numbers.operand_batching_dims, numbers.start_indices_batching_dims):
+            start[d] = batch[b]
+        if fill:
+            if any(s < 0 or s + z > n for s, z, n in zip(start, sizes, operand.shape)):
+                continue  # filled: position 0
+        else:
+            start = _clamped_starts(start, operand.shape, sizes)
+        position = list(start)
+        for d, o in zip(shape, offset_operand_dims):
+            position[o] += index[d]
+        out[index] = operand[tuple(position)]
+    return out
+
+
+_POSITIONS = {"gather": _gather_positions, "dynamic_slice": _dynamic_slice_positions,
+              "dynamic_update_slice": _dynamic_update_slice_positions}
 
 
 def _scatter_add(eqn, ins):

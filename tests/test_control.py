@@ -331,8 +331,8 @@ def test_inputs_as_constants_signals_and_policies():
 
 
 def test_gradients_through_inputs_against_finite_differences():
-    """d x(T) / d(constant input) and d x(T) / d(policy gain), forward (default) and reverse
-    (many inputs) against central differences; the cart-pole, 2 s."""
+    """d x(T) / d(constant input) by `jax.grad` and d x(T) / d(policy gain) by `jax.jacfwd`,
+    against central differences; the cart-pole, 2 s."""
     plant = cart_pole()
     q0, u0 = jnp.array([0.0, 0.2]), jnp.zeros(2)
 
@@ -345,11 +345,11 @@ def test_gradients_through_inputs_against_finite_differences():
         return jaxdyn.simulate(plant, q0, u0, CART_POLE, t1=2.0, inputs=policy, rtol=1e-11,
                                atol=1e-11).q[-1, 0]
 
-    for fn, x in ((final, jnp.array([0.3])), (with_gain, jnp.array([5.0]))):
+    for fn, x, derivative in ((final, jnp.array([0.3]), jax.grad),
+                              (with_gain, jnp.array([5.0]), jax.jacfwd)):
         h = 1e-5
         central = (fn(x + h) - fn(x - h)) / (2 * h)
-        np.testing.assert_allclose(jax.grad(fn)(x), [central], rtol=1e-6)
-        np.testing.assert_allclose(jax.jacfwd(fn)(x), [central], rtol=1e-6)
+        np.testing.assert_allclose(derivative(fn)(x), [central], rtol=1e-6)
 
 
 def test_input_errors_name_the_problem():
@@ -367,6 +367,10 @@ def test_input_errors_name_the_problem():
     with pytest.raises(ValueError, match="input_map names speed 5"):
         jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), [5]).accelerations(
             0.0, jnp.zeros(2), jnp.zeros(2), CART_POLE)
+    with pytest.raises(ValueError, match=r"directions must be an array \(2, k\)"):
+        jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), jaxdyn.ForceInput(
+            lambda q, p: q, directions=[1.0, 0.0])).input_matrix(0.0, jnp.zeros(2),
+                                                                  jnp.zeros(2), CART_POLE)
     with pytest.raises(RuntimeError, match="linearisation is not finite"):
         jaxdyn.linearise(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * q[0] ** 2 * qd[0] ** 2),
                          0.0, jnp.zeros(1), jnp.zeros(1))
@@ -425,3 +429,98 @@ def test_batch_under_a_policy():
     expected = np.exp(-zeta * wn * 2.0) * (np.cos(wd * 2.0) + zeta * wn / wd * np.sin(wd * 2.0))
     np.testing.assert_allclose(solution.q[:, -1, 0], np.asarray(x0[:, 0]) * expected,
                                rtol=1e-9, atol=1e-12)
+
+
+def test_heavy_top_steady_precession():
+    """A heavy symmetric top on its tip, zxz Euler angles (ψ, θ, φ): steady precession at
+    nutation θ₀ and spin ω₃ = φ̇ + ψ̇ cos θ₀ holds when I₁ Ω² cos θ₀ − I₃ ω₃ Ω + m g L = 0
+    (Ω = ψ̇; a slow and a fast root). There the accelerations vanish, and the linearisation's
+    non-zero eigenvalues are the nutation ±i √(U''(θ₀)/I₁) of Routh's reduced potential
+    U(θ) = (b − a cos θ)² / (2 I₁ sin² θ) + m g L cos θ, a = I₃ ω₃, b = I₁ Ω sin² θ₀ + a cos θ₀
+    (differentiated by sympy here); I₁ about the tip (I₁ + m L² with I₁ about the centre of
+    mass)."""
+    from multibody_systems import SYSTEMS
+
+    sm = pytest.importorskip("sympy")
+    reference = SYSTEMS["heavy_top"]
+    p = reference.params
+    m, length, i3, g = (p[k] for k in ("m", "L", "I3", "g"))
+    i1 = p["I1"] + m * length**2
+    system = jaxdyn.Lagrangian.from_system(reference.system)
+    theta0, spin = 0.7, 50.0
+    for precession in np.roots([i1 * np.cos(theta0), -i3 * spin, m * g * length]):
+        rates = jnp.array([precession, 0.0, spin - precession * np.cos(theta0)])
+        q0 = jnp.array([0.4, theta0, -1.1])
+        np.testing.assert_allclose(system.accelerations(0.0, q0, rates, p), 0, atol=1e-10)
+        theta = sm.symbols("theta")
+        a = i3 * spin
+        b = i1 * precession * np.sin(theta0) ** 2 + a * np.cos(theta0)
+        potential = (b - a * sm.cos(theta)) ** 2 / (2 * i1 * sm.sin(theta) ** 2) + (
+            m * g * length * sm.cos(theta))
+        assert abs(float(sm.diff(potential, theta).subs(theta, theta0))) < 1e-9
+        nutation = np.sqrt(float(sm.diff(potential, theta, 2).subs(theta, theta0)) / i1)
+        values = np.asarray(jaxdyn.linearise(system, 0.0, q0, rates, p).eigenvalues())
+        moving = values[np.abs(values) > 1e-6]
+        np.testing.assert_allclose(np.sort(moving.imag), [-nutation, nutation], rtol=1e-10)
+        np.testing.assert_allclose(moving.real, 0, atol=1e-8 * nutation)
+
+
+def test_point_forces_and_body_torques_as_generalized_active_forces():
+    """Kane's generalized active forces of a force at a point and of a torque on a body,
+    against their closed forms: a horizontal force F at the cart-pole's bob (x + l sin θ,
+    l cos θ) gives Q = F (1, l cos θ); a torque τ about the world vertical on the heavy top
+    gives, in zxz Euler angle rates, Q = τ (1, 0, cos θ), and in body angular velocities
+    (Gibbs–Appell, u = ω), Q = τ Rᵀ e_z. A tuple of maps stacks their columns."""
+    from multibody_systems import SYSTEMS, zxz_angle_rates
+    from jaxdyn.rotations import euler_angles
+
+    bob = jaxdyn.ForceInput(
+        lambda q, p: jnp.stack([q[0] + p["l"] * jnp.sin(q[1]), p["l"] * jnp.cos(q[1])]),
+        directions=[[1.0], [0.0]])
+    plant = jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), (bob, [0]))
+    q, u = jnp.array([0.3, 0.4]), jnp.array([0.5, -1.0])
+    np.testing.assert_allclose(
+        plant.input_matrix(0.0, q, u, CART_POLE),
+        [[1.0, 1.0], [CART_POLE["l"] * np.cos(0.4), 0.0]], rtol=1e-14)
+    # The pushed bob accelerates the equations by M⁻¹ B r, as an explicit force in T, V would.
+    pushed = jaxdyn.Lagrangian(
+        cart_pole_T, cart_pole_V,
+        forces=lambda q, qd, p: 2.0 * jnp.stack([jnp.ones_like(q[0]), p["l"] * jnp.cos(q[1])]))
+    np.testing.assert_allclose(
+        plant.with_inputs(jnp.array([2.0, 0.0])).accelerations(0.0, q, u, CART_POLE),
+        pushed.accelerations(0.0, q, u, CART_POLE), rtol=1e-13)
+
+    reference = SYSTEMS["heavy_top"]
+    about_z = jaxdyn.TorqueInput(lambda q, p: euler_angles(q, "zxz"), directions=[[0.0], [0.0],
+                                                                                 [1.0]])
+    angles, rates = jnp.array([0.4, 0.7, -1.1]), jnp.array([0.2, 0.1, 20.0])
+    lagrange = jaxdyn.Controlled(jaxdyn.Lagrangian.from_system(reference.system), about_z)
+    np.testing.assert_allclose(lagrange.input_matrix(0.0, angles, rates, reference.params),
+                               [[1.0], [0.0], [np.cos(0.7)]], atol=1e-14)
+    appell = jaxdyn.Controlled(jaxdyn.GibbsAppell.from_system(
+        reference.system, lambda q, p: zxz_angle_rates(q)), about_z)
+    np.testing.assert_allclose(appell.input_matrix(0.0, angles, rates, reference.params),
+                               np.asarray(euler_angles(angles, "zxz"))[2][:, None],
+                               atol=1e-14)
+
+
+def test_a_constrained_controlled_system_holds_and_saves_its_inputs():
+    """A bob on a rod (Cartesian (x, y), x² + y² = l²) pushed sideways by a constant force F
+    (input along x) rests at tan θ = F / (m g): started there it stays, and the saved inputs
+    are F at every time; `equilibrium` finds the same angle."""
+    p = dict(m=0.8, g=9.81, l=1.5)
+    force = 3.0
+    angle = np.arctan2(force, p["m"] * p["g"])
+    system = jaxdyn.Constrained(
+        jaxdyn.Controlled(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
+                                            lambda q, p: p["m"] * p["g"] * q[1]), [0]),
+        holonomic=lambda q, p: jnp.array([q @ q - p["l"] ** 2]))
+    rest = jnp.array([p["l"] * np.sin(angle), -p["l"] * np.cos(angle)])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    solution = jaxdyn.simulate(system, rest, jnp.zeros(2), p, t1=2.0, ts=ts,
+                               inputs=jnp.array([force]), save=("q", "inputs"), rtol=1e-10,
+                               atol=1e-10)
+    np.testing.assert_allclose(solution.q, np.broadcast_to(rest, (5, 2)), atol=1e-9)
+    np.testing.assert_allclose(solution.inputs, np.full((5, 1), force))
+    found = jaxdyn.equilibrium(system, jnp.array([0.3, -1.4]), p, jnp.array([force]))
+    np.testing.assert_allclose(found.q, rest, atol=1e-10)

@@ -289,7 +289,7 @@ def test_max_steps_reached_without_throw_returns_the_result():
 
 
 # ---------------------------------------------------------------------------------------------
-# Known gap (see the report): out-of-bounds indexing in a callback is not caught
+# Out-of-bounds indexing in a callback
 # ---------------------------------------------------------------------------------------------
 
 

@@ -15,6 +15,94 @@ from .._state import check_vector, public_method
 from .articulated import ArticulatedBody, articulated_body_algorithm
 
 
+class ForceInput(eqx.Module):
+    r"""An input map for a force applied at a point P(q, p) of the system: the inputs are the
+    force's components along `directions`, and they enter the equations as the generalized
+    active forces (Kane and Levinson, *Dynamics: Theory and Applications*, 1985, §4.4)
+
+        B = (∂v_P/∂u)ᵀ D,    v_P = (∂P/∂q) q̇ = (∂P/∂q) K(q) u,
+
+    with ∂v_P/∂u the point's partial velocities along the formulation's speeds u (q̇ = K u) and
+    D (3, k) the directions in world axes.
+
+    **Arguments:**
+
+    - `point`: P(q, p) → (3,) (or (2,) for a planar system), the point in world axes, e.g.
+      a body's ``position`` or ``lambda q, p: x(q, p) + R(q, p) @ r`` for a point r fixed on
+      it. (`jaxdyn.PointForce` is the same force as a load of a `MultibodySystem`, given as a
+      function rather than as inputs.)
+    - `directions`: D as an array (d, k) of fixed world directions, or a function D(q, p) →
+      (d, k) (e.g. ``lambda q, p: R(q, p)[:, :1]``, a thrust along a body axis); None for the
+      world axes (k = d).
+
+    **Example** (a horizontal push on a cart-pole's bob):
+
+        plant = jaxdyn.Controlled(system, jaxdyn.ForceInput(bob, directions=[[1.0], [0.0]]))
+    """
+
+    point: Callable
+    directions: Any = None
+
+    def matrix(self, controlled, t, q, p, num_speeds):
+        rates = _speed_map(controlled.dynamics, t, q, p, num_speeds)  # K (n, m)
+        jacobian = jax.jacfwd(lambda q: jnp.asarray(self.point(q, p)))(q)  # ∂P/∂q
+        if jacobian.ndim != 2:
+            raise ValueError("ForceInput: point(q, p) must return a vector, got shape "
+                             f"{jacobian.shape[:-1]}.")
+        return (jacobian @ rates).T @ _directions(self.directions, q, p, jacobian.shape[0])
+
+
+class TorqueInput(eqx.Module):
+    r"""An input map for a torque (a couple) applied to a body of orientation R(q, p): the
+    inputs are the torque's components along `directions`, entering as
+
+        B = (∂ω/∂u)ᵀ D,    ω̃ = Ṙ Rᵀ,   Ṙ = Σᵢ (∂R/∂qᵢ) q̇ᵢ,   q̇ = K(q) u,
+
+    ∂ω/∂u the body's partial angular velocities (world axes; Kane and Levinson 1985, §4.4).
+    A torque between two bodies (a motor) is two `BodyTorque`s of opposite sign, or the
+    relative joint coordinate's column.
+
+    **Arguments:**
+
+    - `body`: a `RigidBody` (its orientation), or R(q, p) → (3, 3), body axes to world axes.
+      (`jaxdyn.BodyTorque` is the same torque as a load of a `MultibodySystem`, given as a
+      function rather than as inputs.)
+    - `directions`: D (3, k) in world axes, or a function D(q, p) → (3, k) (body axes:
+      ``lambda q, p: R(q, p)``); None for the world axes.
+    """
+
+    body: Any
+    directions: Any = None
+
+    def matrix(self, controlled, t, q, p, num_speeds):
+        rates = _speed_map(controlled.dynamics, t, q, p, num_speeds)
+        orientation = getattr(self.body, "orientation", self.body)
+        rotation = jnp.asarray(orientation(q, p))
+        if rotation.shape != (3, 3):
+            raise ValueError("TorqueInput: the orientation R(q, p) must be a (3, 3) rotation "
+                             f"matrix, got shape {rotation.shape}.")
+        derivative = jax.jacfwd(lambda q: jnp.asarray(orientation(q, p)))(q)  # (3, 3, n)
+        spin = jnp.einsum("ikn,nm,jk->mij", derivative, rates, rotation)  # (Ṙ Rᵀ) per speed
+        partial = jnp.stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]], axis=1)  # (m, 3)
+        return partial @ _directions(self.directions, q, p, 3)
+
+
+def _speed_map(dynamics, t, q, p, num_speeds):
+    """K(q) of q̇ = K u: the coordinate rates are linear in the speeds."""
+    zero = jnp.zeros((num_speeds,), q.dtype)
+    return jax.jacfwd(lambda u: dynamics.coordinate_rates(t, q, u, p))(zero)
+
+
+def _directions(directions, q, p, dimension):
+    if directions is None:
+        return jnp.eye(dimension, dtype=q.dtype)
+    value = jnp.asarray(directions(q, p) if callable(directions) else directions, q.dtype)
+    if value.ndim != 2 or value.shape[0] != dimension:
+        raise ValueError(f"directions must be an array ({dimension}, k) (one column per "
+                         f"input), got shape {value.shape}.")
+    return value
+
+
 class Controlled(AbstractDynamics):
     r"""A formulation driven by control inputs r (k,) through an input map B:
 
@@ -44,8 +132,10 @@ class Controlled(AbstractDynamics):
 
     - `dynamics`: the formulation driven (`Lagrangian`, `GibbsAppell`, `Kane`,
       `ArticulatedBody`, `IndependentSpeeds`, …).
-    - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`), or a sequence of the
-      indices of the actuated speeds (B = columns of the identity: one input per index).
+    - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`); a sequence of the
+      indices of the actuated speeds (B = columns of the identity: one input per index); a
+      `ForceInput` or `TorqueInput`; or a tuple of these, whose columns are concatenated (the
+      inputs in that order).
     - `inputs`: as above; None for r = 0.
     - `time_dependent`: if True, B takes t first.
 
@@ -65,14 +155,14 @@ class Controlled(AbstractDynamics):
         if not isinstance(dynamics, AbstractDynamics):
             raise ValueError("Controlled needs a jaxdyn formulation (AbstractDynamics) to "
                              f"drive, got {type(dynamics).__name__}.")
-        if callable(input_map):
+        if isinstance(input_map, (tuple, list)) and any(
+                _is_map(x) or isinstance(x, (list, tuple)) for x in input_map):
+            self.input_map, self.actuated = _Stacked(tuple(
+                x if _is_map(x) else _Actuated(_indices(x)) for x in input_map)), None
+        elif _is_map(input_map):
             self.input_map, self.actuated = input_map, None
         else:
-            indices = tuple(int(i) for i in np.atleast_1d(np.asarray(input_map)))
-            if not indices or len(set(indices)) != len(indices) or min(indices) < 0:
-                raise ValueError("input_map must be B(q, p) → (m, k) or distinct non-negative "
-                                 f"indices of actuated speeds, got {input_map!r}.")
-            self.input_map, self.actuated = None, indices
+            self.input_map, self.actuated = None, _indices(input_map)
         self.dynamics = dynamics
         self.inputs = inputs
         self.time_dependent = time_dependent
@@ -87,10 +177,9 @@ class Controlled(AbstractDynamics):
 
     def _input_matrix(self, t, q, p, num_speeds):
         if self.actuated is not None:
-            if max(self.actuated) >= num_speeds:
-                raise ValueError(f"input_map names speed {max(self.actuated)}, but the system "
-                                 f"has {num_speeds} speeds.")
-            return jnp.eye(num_speeds, dtype=q.dtype)[:, list(self.actuated)]
+            return _Actuated(self.actuated).matrix(self, t, q, p, num_speeds)
+        if isinstance(self.input_map, _MAPS):
+            return self.input_map.matrix(self, t, q, p, num_speeds)
         matrix = jnp.asarray(call(self.input_map, "input map B", self.time_dependent,
                                   CONFIGURATION_ARGS, t, q, p))
         if matrix.ndim != 2 or matrix.shape[0] != num_speeds:
@@ -183,6 +272,46 @@ class Controlled(AbstractDynamics):
 
     def state_constraints(self, t, q, u, p=None):
         return self.dynamics.state_constraints(t, q, u, p)
+
+
+def _indices(input_map) -> tuple[int, ...]:
+    indices = tuple(int(i) for i in np.atleast_1d(np.asarray(input_map)))
+    if not indices or len(set(indices)) != len(indices) or min(indices) < 0:
+        raise ValueError("input_map must be B(q, p) → (m, k) or distinct non-negative "
+                         f"indices of actuated speeds, got {input_map!r}.")
+    return indices
+
+
+class _Actuated(eqx.Module):
+    """Actuated speeds: B = the identity's columns at `indices`."""
+
+    indices: tuple[int, ...] = eqx.field(static=True)
+
+    def matrix(self, controlled, t, q, p, num_speeds):
+        if max(self.indices) >= num_speeds:
+            raise ValueError(f"input_map names speed {max(self.indices)}, but the system "
+                             f"has {num_speeds} speeds.")
+        # A NumPy constant: no indexing operation staged (or run eagerly) per call.
+        return jnp.asarray(np.eye(num_speeds, dtype=q.dtype)[:, list(self.indices)])
+
+
+class _Stacked(eqx.Module):
+    """The columns of several input maps side by side (a tuple given as `input_map`)."""
+
+    maps: tuple
+
+    def matrix(self, controlled, t, q, p, num_speeds):
+        return jnp.concatenate([
+            x.matrix(controlled, t, q, p, num_speeds) if isinstance(x, _MAPS)
+            else Controlled(controlled.dynamics, x, time_dependent=controlled.time_dependent)
+            ._input_matrix(t, q, p, num_speeds) for x in self.maps], axis=1)
+
+
+_MAPS = (ForceInput, TorqueInput, _Actuated, _Stacked)
+
+
+def _is_map(x) -> bool:
+    return callable(x) or isinstance(x, _MAPS)
 
 
 def _takes_time_only(fn) -> bool:
