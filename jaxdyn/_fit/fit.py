@@ -507,7 +507,7 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
     states = problem.initial_states(latent)
     initial_states, predictions = {}, {}
     if uncertainty:
-        report, predicted_groups, loss = analyse(problem, latent, tolerance)
+        report, predicted_groups, loss = analyse(problem, latent, tolerance, state)
     else:
         report = None
         predicted_groups, loss = _evaluate(problem, latent)

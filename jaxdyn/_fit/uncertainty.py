@@ -16,6 +16,8 @@ errors. Parameters are reported in physical units: cov(x) = G cov(z) Gᵀ, G = �
 import diffrax
 import equinox as eqx
 import jax
+import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
@@ -101,10 +103,48 @@ def _linearisation(problem: TrajectoryMatching, z):
     return (jacobian, r_all, r_obs, jax.jacfwd(physical)(flat)[:, :num_params], predictions)
 
 
-def analyse(problem: TrajectoryMatching, z, tolerance: float):
+@eqx.filter_jit
+def _from_solver(problem: TrajectoryMatching, z, jac, residual):
+    """`_linearisation`'s outputs from a least-squares solver's last linearisation at z: J
+    materialised from the linear operator the solver formed (a matrix product: its Jacobian
+    is already a residual of that linearisation, so it is not compiled a second time),
+    columns in the order of `flatten_latent`; the predictions from one forward evaluation."""
+    matrix = jac.as_matrix()  # columns in the order of ravel_pytree(z)
+    flat_z, unravel_z = ravel_pytree(z)
+    position = jnp.arange(flat_z.size, dtype=flat_z.dtype)
+    order = flatten_latent(unravel_z(position))[0].astype(int)
+    flat, unravel = flatten_latent(z)
+    physical = lambda f: ravel_pytree(problem.trained_leaves(  # noqa: E731
+        problem.params(unravel(f)["params"])))[0]
+    num_params = ravel_pytree(z["params"])[0].size
+    predictions, _, r_obs = problem.evaluate(z)
+    return (matrix[:, order], residual, r_obs, jax.jacfwd(physical)(flat)[:, :num_params],
+            predictions)
+
+
+def _solver_linearisation(state, z):
+    """(J operator, r) at z from a Gauss–Newton-type solver's state (optimistix keeps the
+    linearisation at its accepted iterate, which is the iterate it returns), or None."""
+    f_info = getattr(state, "f_info", None)
+    if f_info is None or bool(np.asarray(getattr(state, "first_step", True))):
+        return None  # no step taken: the state holds a placeholder, not a linearisation
+    jac, residual = getattr(f_info, "jac", None), getattr(f_info, "residual", None)
+    if not isinstance(jac, lx.AbstractLinearOperator) or residual is None:
+        return None
+    if jax.tree_util.tree_structure(jac.in_structure()) != jax.tree_util.tree_structure(z):
+        return None
+    return jac, residual
+
+
+def analyse(problem: TrajectoryMatching, z, tolerance: float, state=None):
     """(the Gauss–Newton `Uncertainty` of the fit at z (forward-mode Jacobian), per group the
-    predicted observations, ½‖r_obs‖²): one compiled evaluation."""
-    *arrays, predictions = _linearisation(problem, z)
+    predicted observations, ½‖r_obs‖²): one compiled evaluation, reusing the Jacobian of the
+    least-squares solver's last step when `state` (its final state) holds one."""
+    linearised = None if state is None else _solver_linearisation(state, z)
+    if linearised is None:
+        *arrays, predictions = _linearisation(problem, z)
+    else:
+        *arrays, predictions = _from_solver(problem, z, *linearised)
     jacobian, r_all, r_obs, g = (np.asarray(x) for x in arrays)
     num_observations = int(sum(np.count_nonzero(np.asarray(group.sqrt_weights))
                                for group in problem.groups))
