@@ -34,12 +34,15 @@ import numpy as np
 from jax.extend import core as jex
 
 # Programs whose unrolled form has more scalar operations than this (after constant folding)
-# run as written. Beyond it XLA no longer keeps the scalar program in a few kernels: it splits
-# the graph at every value with many users (an LDLᵀ of 10 × 10 becomes ~70 kernels), and compile
-# time grows; array operations are then as fast (benchmarks/bench_equations.py and
-# bench_trees.py: Lagrange's equations of a chain of 8 rods, about 2000 operations, and the
-# articulated-body algorithm on 8 links, about 1700, run as fast either way).
-MAX_ELEMENTS = 2000
+# run as written. Up to it, straight-line code wins twice over: a program of 3-vectors and
+# 3 × 3 rotations run as written launches a kernel per tiny operation (a heavy top by
+# Gibbs–Appell, 2195 operations: 7.0 ms a simulation as arrays, 0.37 ms unrolled, and 18 → 9 s
+# to compile; a chain of 5 rods by Lagrange, 3100: 11 → 0.85 ms, 23 → 12 s;
+# benchmarks/bench_unroll_threshold.py). Beyond it XLA no longer keeps the scalar program in a
+# few kernels and its compile time grows faster than the program: the Panda's articulated-body
+# algorithm (6908 operations) had not compiled after 7 minutes unrolled (2.8 s as arrays, whose
+# 6 × 6 operations are wide enough to amortise their launches).
+MAX_ELEMENTS = 4000
 # Programs whose arrays hold more elements than this in total (summed over every intermediate,
 # before folding) are not tried: the interpreter's Python time (about 1 s per 100 000 elements).
 # Spatial (6 × 6) algebra of small trees folds to a small fraction of its size.
