@@ -12,6 +12,7 @@ import numpy as np
 from .._convention import CONFIGURATION_ARGS, call
 from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._state import check_vector, public_method
+from .._system.bodies import vee
 from .articulated import ArticulatedBody, articulated_body_algorithm
 
 
@@ -45,11 +46,12 @@ class ForceInput(eqx.Module):
 
     def matrix(self, controlled, t, q, p, num_speeds):
         rates = _speed_map(controlled.dynamics, t, q, p, num_speeds)  # K (n, m)
-        jacobian = jax.jacfwd(lambda q: jnp.asarray(self.point(q, p)))(q)  # ∂P/∂q
-        if jacobian.ndim != 2:
-            raise ValueError("ForceInput: point(q, p) must return a vector, got shape "
-                             f"{jacobian.shape[:-1]}.")
-        return (jacobian @ rates).T @ _directions(self.directions, q, p, jacobian.shape[0])
+        point = lambda q: jnp.asarray(self.point(q, p))  # noqa: E731
+        shape = jax.eval_shape(point, q).shape
+        if len(shape) != 1:
+            raise ValueError(f"ForceInput: point(q, p) must return a vector, got shape {shape}.")
+        partial = _along_speeds(point, q, rates)  # ∂v_P/∂u (d, m)
+        return partial.T @ _directions(self.directions, q, p, partial.shape[0])
 
 
 class TorqueInput(eqx.Module):
@@ -59,7 +61,7 @@ class TorqueInput(eqx.Module):
         B = (∂ω/∂u)ᵀ D,    ω̃ = Ṙ Rᵀ,   Ṙ = Σᵢ (∂R/∂qᵢ) q̇ᵢ,   q̇ = K(q) u,
 
     ∂ω/∂u the body's partial angular velocities (world axes; Kane and Levinson 1985, §4.4).
-    A torque between two bodies (a motor) is two `BodyTorque`s of opposite sign, or the
+    A torque between two bodies (a motor) is two `TorqueInput`s of opposite sign, or the
     relative joint coordinate's column.
 
     **Arguments:**
@@ -81,10 +83,16 @@ class TorqueInput(eqx.Module):
         if rotation.shape != (3, 3):
             raise ValueError("TorqueInput: the orientation R(q, p) must be a (3, 3) rotation "
                              f"matrix, got shape {rotation.shape}.")
-        derivative = jax.jacfwd(lambda q: jnp.asarray(orientation(q, p)))(q)  # (3, 3, n)
-        spin = jnp.einsum("ikn,nm,jk->mij", derivative, rates, rotation)  # (Ṙ Rᵀ) per speed
-        partial = jnp.stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]], axis=1)  # (m, 3)
+        rate = _along_speeds(lambda q: jnp.asarray(orientation(q, p)), q, rates)  # (3, 3, m)
+        # ω̃ = Ṙ Rᵀ for each speed: the partial angular velocities, world axes (m, 3).
+        partial = jax.vmap(lambda r: vee(r @ rotation.T), in_axes=2)(rate)
         return partial @ _directions(self.directions, q, p, 3)
+
+
+def _along_speeds(fn, q, rates):
+    """The rate of fn(q) along each speed (q̇ = K u with u a unit vector): one JVP per column
+    of K, stacked last."""
+    return jax.vmap(lambda k: jax.jvp(fn, (q,), (k,))[1], out_axes=-1)(rates.T)
 
 
 def _speed_map(dynamics, t, q, p, num_speeds):
