@@ -650,18 +650,17 @@ def _gather_positions(params, operand, indices):
     if mode not in (jax.lax.GatherScatterMode.CLIP, jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS,
                     jax.lax.GatherScatterMode.FILL_OR_DROP):
         return None
-    shape = numbers.offset_dims
-    out_shape = None
+    offset_dims = numbers.offset_dims
     batch_shape = indices.shape[:-1]
     offset_operand_dims = [d for d in range(operand.ndim)
                            if d not in numbers.collapsed_slice_dims
                            and d not in numbers.operand_batching_dims]
     rank = len(batch_shape) + len(offset_operand_dims)
-    batch_dims = [d for d in range(rank) if d not in shape]
+    batch_dims = [d for d in range(rank) if d not in offset_dims]
     out_shape = [0] * rank
     for d, b in zip(batch_dims, batch_shape):
         out_shape[d] = b
-    for d, o in zip(shape, offset_operand_dims):
+    for d, o in zip(offset_dims, offset_operand_dims):
         out_shape[d] = sizes[o]
     out = np.zeros(out_shape, dtype=operand.dtype)
     for index in np.ndindex(*out_shape):
@@ -678,7 +677,7 @@ def _gather_positions(params, operand, indices):
         else:
             start = _clamped_starts(start, operand.shape, sizes)
         position = list(start)
-        for d, o in zip(shape, offset_operand_dims):
+        for d, o in zip(offset_dims, offset_operand_dims):
             position[o] += index[d]
         out[index] = operand[tuple(position)]
     return out
