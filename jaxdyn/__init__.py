@@ -18,6 +18,11 @@ from ._form.controlled import TorqueInput as TorqueInput
 from ._form.euler_lagrange import Lagrangian as Lagrangian
 from ._form.gibbs_appell import GibbsAppell as GibbsAppell
 from ._form.kane import Kane as Kane
+from ._form.newton_euler import (
+    energy_regressors as energy_regressors,
+    inertial_parameters as inertial_parameters,
+    inverse_dynamics_regressor as inverse_dynamics_regressor,
+)
 from ._fit.experiment import Experiment as Experiment, MultipleShooting as MultipleShooting
 from ._fit.fit import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning, fit as fit
 from ._fit.parametrisation import (
@@ -49,6 +54,17 @@ from ._solution import (
 )
 from ._system.bodies import Particle as Particle, RigidBody as RigidBody
 from ._system.loads import BodyTorque as BodyTorque, PointForce as PointForce
+from ._system.frames import (
+    centre_of_mass as centre_of_mass,
+    centre_of_mass_jacobian as centre_of_mass_jacobian,
+    centre_of_mass_velocity as centre_of_mass_velocity,
+    centroidal_momentum as centroidal_momentum,
+    centroidal_momentum_matrix as centroidal_momentum_matrix,
+    frame_acceleration as frame_acceleration,
+    frame_jacobian as frame_jacobian,
+    frame_pose as frame_pose,
+    frame_velocity as frame_velocity,
+)
 from ._system.joints import (
     AbstractJoint as AbstractJoint,
     Fixed as Fixed,

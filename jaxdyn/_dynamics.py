@@ -71,6 +71,13 @@ class AbstractDynamics(eqx.Module):
     def user_functions(self, t, q, u, p=None):
         """Every user callback evaluated once, without derivatives (for trace-time checks)."""
 
+    def form_residual(self, t, q, u, ud, p=None):
+        """M u̇ − f for one state, from this formulation's (M, f); a formulation with a cheaper
+        route (the articulated-body formulation: the recursive Newton–Euler algorithm)
+        overrides it."""
+        mass_matrix, forcing = self.form_equations(t, q, u, p)
+        return mass_matrix @ ud - forcing
+
     def state_projection(self):
         """None, or a function (t, q, u, p) → (q, u) that `simulate` applies after every step
         (drift control of constrained systems, `jaxdyn.Projection`)."""
@@ -149,6 +156,16 @@ class AbstractDynamics(eqx.Module):
 
         return error_if(accelerations, causes, (t, q, u),
                         failed=~jnp.all(jnp.isfinite(accelerations)))
+
+    @public_method("(),(n),(m),(m)->(m)")
+    def residual(self, t, q, u, ud, p=None):
+        """Inverse dynamics: r = M(t, q) u̇ − f(t, q, u), the generalized forces along the
+        speeds that the motion (q, u, u̇) needs beyond those the system already applies (zero
+        along its own motion; for a robot, the joint torques of a planned trajectory). For a
+        `Constrained` system f holds no constraint forces: r is what the constraints and any
+        actuators must supply together. Leading axes broadcast (a whole trajectory at once)."""
+        check_static_indexing(self.user_functions, t, q, u, p)
+        return unrolled(self.form_residual, t, q, u, ud, p)
 
     @public_method("(),(n),(m)->()")
     def kinetic_energy(self, t, q, u, p=None):

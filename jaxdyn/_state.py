@@ -172,3 +172,25 @@ def public_method(signature: str):
         return reports_state(wrapper, block=False)  # `compiled` returns ready results
 
     return decorator
+
+
+def public_function(num_static: int = 1):
+    """A public function ``fn(system, *args, **options)`` of a system and states, compiled once
+    per system, argument shapes and options (keyword options and the first `num_static`
+    positional arguments — the system, a frame's name — are static; Python floats among the
+    rest are traced, so that a new value reuses the program). Inside a caller's `jax.jit`,
+    `vmap` or `grad` it is traced once and inlined."""
+    def decorator(fn):
+        @filter_jit
+        def compiled(static, args, options):
+            return fn(*static, *args, **dict(options))
+
+        @functools.wraps(fn)
+        def wrapper(*args, **options):
+            static, arrays = args[:num_static], args[num_static:]
+            arrays = numbers_as_arrays(arrays, state_dtype(*arrays))
+            return compiled(static, arrays, tuple(sorted(options.items())))
+
+        return wrapper
+
+    return decorator

@@ -7,7 +7,6 @@ by hand; Euler's equations for a free body; closed forms for springs, dampers an
 conservation of energy and momentum; finite differences for gradients.
 """
 
-import importlib.metadata
 from xml.etree import ElementTree
 
 import jax
@@ -22,14 +21,7 @@ from helpers import assert_close, central_difference_params
 
 pin = pytest.importorskip("pinocchio")
 yourdfpy = pytest.importorskip("yourdfpy")
-
-
-def _robot_file(name):
-    """A URDF of the example-robot-data package (installed with the test extras)."""
-    for f in importlib.metadata.files("example-robot-data"):
-        if str(f).endswith("/" + name):
-            return str(f.locate())
-    raise FileNotFoundError(name)
+from robots import Robot, robot_file  # noqa: E402  (needs Pinocchio)
 
 
 def _formulations(tree, lagrange=True):
@@ -44,46 +36,21 @@ def _formulations(tree, lagrange=True):
 def _pinocchio_case(name, floating, num_states=3, seed=0):
     """The model in jaxdyn and Pinocchio, random states in both conventions, and Pinocchio's
     M (q), bias forces C(q, v) v + g(q), and accelerations for random joint forces."""
-    path = _robot_file(name)
-    tree, p = jaxdyn.from_urdf(path, floating=floating, damping=False)  # Pinocchio has none
-    model = (pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer()) if floating
-             else pin.buildModelFromUrdf(path))
-    data = model.createData()
-    robot = yourdfpy.URDF.load(path, load_meshes=False, build_scene_graph=False,
-                               build_collision_scene_graph=False,
-                               load_collision_meshes=False).robot
-    child = {joint.name: joint.child for joint in robot.joints}
-    q_slices, u_slices = tree.coordinate_slices(), tree.speed_slices()
-    rng = np.random.default_rng(seed)
-    qs, us, taus, masses, biases, accelerations = [], [], [], [], [], []
-    permutation = np.zeros((model.nv, model.nv))  # jaxdyn's speeds → Pinocchio's
-    for _ in range(num_states):
-        q_pin = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
-        v_pin, tau_pin = rng.normal(size=model.nv), rng.normal(size=model.nv)
-        q, u, tau = (np.zeros(tree.num_coordinates), np.zeros(tree.num_speeds),
-                     np.zeros(tree.num_speeds))
-        for j in range(1, model.njoints):
-            name_j = model.names[j]
-            link = tree.links[0].name if name_j == "root_joint" else child[name_j]
-            iq, nq, iv, nv = model.idx_qs[j], model.nqs[j], model.idx_vs[j], model.nvs[j]
-            q_joint = q_pin[iq:iq + nq]
-            if name_j == "root_joint":  # Pinocchio's quaternion is (x, y, z, w)
-                q_joint = np.concatenate([q_joint[:3], q_joint[6:], q_joint[3:6]])
-            q[q_slices[link]] = q_joint
-            u[u_slices[link]], tau[u_slices[link]] = v_pin[iv:iv + nv], tau_pin[iv:iv + nv]
-            permutation[iv:iv + nv, u_slices[link]] = np.eye(nv)
-        m = pin.crba(model, data, q_pin)
+    robot = Robot.load(robot_file(name), floating)
+    model, data = robot.model, robot.data
+    (q_pin, v_pin, tau_pin), (q, u, tau) = robot.random_states(num_states, seed)
+    masses, biases, accelerations = [], [], []
+    for x, v, f in zip(q_pin, v_pin, tau_pin):
+        m = pin.crba(model, data, x)
         masses.append(np.triu(m) + np.triu(m, 1).T)
-        biases.append(pin.nonLinearEffects(model, data, q_pin, v_pin).copy())
-        accelerations.append(pin.aba(model, data, q_pin, v_pin, tau_pin).copy())
-        qs.append(q)
-        us.append(u)
-        taus.append(tau)
+        biases.append(pin.nonLinearEffects(model, data, x, v).copy())
+        accelerations.append(pin.aba(model, data, x, v, f).copy())
+    tree = robot.tree
     driven = jaxdyn.RigidBodyTree(tree.links, gravity=tree.gravity,
                                   forces=lambda q, u, p: p["tau"])
-    return dict(tree=tree, driven=driven, p=p, q=np.stack(qs), u=np.stack(us),
-                tau=np.stack(taus), M=np.stack(masses), bias=np.stack(biases),
-                accelerations=np.stack(accelerations), permutation=permutation)
+    return dict(tree=tree, driven=driven, p=robot.p, q=q, u=u, tau=tau, M=np.stack(masses),
+                bias=np.stack(biases), accelerations=np.stack(accelerations),
+                permutation=robot.permutation)
 
 
 # The default run checks the Panda (a fixed base); the floating-base quadruped and the 50-joint
@@ -132,7 +99,7 @@ def test_urdf_parameters_are_the_files_inertial_values():
     assert_close(np.einsum("ij,sj->si", case["permutation"], np.asarray(accelerations)),
                  case["accelerations"], rtol=0,
                  atol=1e-10 * np.max(np.abs(case["accelerations"])))
-    path = _robot_file("panda.urdf")
+    path = robot_file("panda.urdf")
     tree, p = jaxdyn.from_urdf(path)
     constant_tree, none = jaxdyn.from_urdf(path, parameters=False)
     assert none is None

@@ -11,6 +11,7 @@ from .._system import spatial
 from .._system import tree as tree_module
 from .._system.tree import RigidBodyTree
 from .kane import kane_equations
+from .newton_euler import joint_forces as newton_euler_joint_forces, newton_euler
 
 
 def _skew(v):
@@ -107,6 +108,14 @@ class ArticulatedBody(AbstractDynamics):
         t, q, u = self._check(t, q, u)
         return articulated_body_algorithm(self.tree, t, q, u, p)
 
+    def form_residual(self, t, q, u, ud, p=None):
+        """M u̇ − f by the recursive Newton–Euler algorithm (Featherstone §5.3), O(N): the
+        links' inertial and gravitational forces and loads, less the joints' own forces."""
+        t, q, u = self._check(t, q, u)
+        ud = check_vector(ud, "u̇ (ud)", self.tree.num_speeds)
+        return (newton_euler(self.tree, t, q, u, ud, p)
+                - newton_euler_joint_forces(self.tree, t, q, u, p))
+
 
 def _subspaces(tree):
     """Per link the motion subspace padded to the tree's largest joint, S (N, 6, k), the mask
@@ -138,9 +147,7 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
         (np.zeros(0, np.int32), np.zeros(0, np.int32))
 
     # Joint forces along the speeds: forces, dampers, and every potential but gravity.
-    elastic = -jax.grad(tree.elastic_energy, argnums=1)(t, q, p)
-    _, transpose = jax.vjp(lambda u: tree.coordinate_rates(t, q, u, p), u)
-    tau = tree.joint_forces(t, q, u, p) + transpose(elastic)[0]
+    tau = newton_euler_joint_forces(tree, t, q, u, p)
     if applied is not None:
         tau = tau + applied
     tau_links = jnp.zeros((n, width), dtype).at[link_of, column_of].set(tau)

@@ -257,6 +257,11 @@ class Controlled(AbstractDynamics):
         mass_matrix, forcing = self.dynamics.form_equations(t, q, u, p)
         return mass_matrix, forcing + self.applied(jnp.asarray(t, q.dtype), q, u, p)
 
+    def form_residual(self, t, q, u, ud, p=None):
+        """The wrapped formulation's M u̇ − f, less B r."""
+        return (self.dynamics.form_residual(t, q, u, ud, p)
+                - self.applied(jnp.asarray(t, q.dtype), q, u, p))
+
     def form_accelerations(self, t, q, u, p=None, *, small):
         if isinstance(self.dynamics, ArticulatedBody):  # B r joins the joint forces
             t = jnp.asarray(t, q.dtype)

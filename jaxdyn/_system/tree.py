@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._convention import call, scalar, vector
+from .._state import check_vector
 from . import spatial
 from .base import AbstractMultibody
 from .joints import AbstractJoint
@@ -63,6 +64,18 @@ def _buffer(template, parents):
         lambda x: jnp.broadcast_to(x, (n + 1,) + jnp.shape(x)).astype(jnp.result_type(x)),
         template)
     return buffer, np.array([n if parent < 0 else parent for parent in parents])
+
+
+def checked_state(tree, q, u=None, ud=None):
+    """(q, u, u̇) checked against `tree` (a `RigidBodyTree`): 1-D, floating, of its sizes."""
+    if not isinstance(tree, RigidBodyTree):
+        raise ValueError(f"Expected a jaxdyn.RigidBodyTree, got {type(tree).__name__}.")
+    q = check_vector(q, "q")
+    u = None if u is None else check_vector(u, "u")
+    tree._check_state(q, u)
+    if ud is not None:
+        ud = check_vector(ud, "u̇ (ud)", tree.num_speeds)
+    return q, u, ud
 
 
 def _get(buffer, i):
@@ -263,12 +276,7 @@ class RigidBodyTree(AbstractMultibody):
         """For every link (in order): its pose in its parent (R_PC (N, 3, 3), r_PC (N, 3)), and
         with `u` its joint velocity (ω_J, v_J) (N, 3) each, in its own axes."""
         rotations_t, translations_t = self._placements()
-        poses, twists = [], []
-        for joint, _, q_index, u_index in self._groups():
-            rotation_j, translation_j = joint.transform(q[q_index])
-            poses.append((rotation_j, translation_j))
-            if u is not None:
-                twists.append(joint.twist(u[u_index]))
+        poses = [joint.transform(q[q_index]) for joint, _, q_index, _ in self._groups()]
         rotation_j, translation_j = self._by_link(poses, q.dtype)
         rotations_t = jnp.asarray(rotations_t, dtype=q.dtype)
         rotation = spatial.matmul(rotations_t, rotation_j)
@@ -276,8 +284,13 @@ class RigidBodyTree(AbstractMultibody):
             rotations_t, translation_j)
         if u is None:
             return rotation, translation
-        omega_j, velocity_j = self._by_link(twists, q.dtype)
-        return rotation, translation, omega_j, velocity_j
+        return rotation, translation, *self.joint_twists(u)
+
+    def joint_twists(self, u):
+        """(ω_J, v_J) = S u for every link (N, 3) each, in its own axes: linear in u, so that
+        its transpose maps the links' spatial forces to forces along the speeds, Σ S_iᵀ f_i."""
+        twists = [joint.twist(u[u_index]) for joint, _, _, u_index in self._groups()]
+        return self._by_link(twists, u.dtype)
 
     def _is_chain(self):
         return all(parent == i - 1 for i, parent in enumerate(self.parents))

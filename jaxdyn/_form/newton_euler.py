@@ -1,0 +1,179 @@
+"""Inverse dynamics of a tree by the recursive Newton–Euler algorithm, and its regressor.
+
+Featherstone, Rigid Body Dynamics Algorithms (2008), §5.3, in 3-vector algebra: outwards, each
+link's spatial velocity and acceleration in its own axes,
+
+    v_i = X_i v_λ(i) + S_i u_i,    a_i = X_i a_λ(i) + S_i u̇_i + v_i ×ₘ S_i u_i,
+
+from the world's a_0 = (0, −g) (gravity as an acceleration of the base); the force each link
+needs, f_i = I_i a_i + v_i ×* I_i v_i − f_i^ext; inwards, the force its joint transmits,
+f_i + Σ_children X_cᵀ (…), whose components along the joint's motion are the joint forces
+τ_i = S_iᵀ f_i. The result is M u̇ + c(q, u) − g(q) − Jᵀ f^ext: what the joints must supply.
+
+A link's spatial inertia is written in its ten inertial parameters π = (m, m c, I_O), the mass,
+first moments and the rotational inertia about the link's origin (the parallel-axis theorem
+I_O = I_c + m (|c|² 1 − c cᵀ)), so that
+
+    I (ω, v) = (I_O ω + h × v,  m v + ω × h),    h = m c,
+
+and inverse dynamics is linear in π: τ = Y(q, u, u̇) π (Atkeson, An and Hollerbach, 1986),
+the route to identifying a robot's inertial parameters from measured joint torques.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._state import public_function
+from .._system import spatial
+from .._system.tree import RigidBodyTree, checked_state as _checked
+
+#: The ten inertial parameters of a link, in order (Pinocchio's `toDynamicParameters` order):
+#: mass, first moments m c, and the inertia about the link's origin in its axes.
+PARAMETER_NAMES = ("m", "mc_x", "mc_y", "mc_z", "I_xx", "I_xy", "I_yy", "I_xz", "I_yz", "I_zz")
+_SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
+
+
+def inertial_parameters(tree: RigidBodyTree, p=None, dtype=None) -> jax.Array:
+    """π (N, 10): each link's mass, first moments m c and inertia about its origin (link axes),
+    from the tree's masses, centres of mass and inertias about them (parallel-axis theorem)."""
+    masses, coms, inertias = tree.link_inertias(p, dtype)
+    eye = jnp.eye(3, dtype=coms.dtype)[None]
+    shift = masses[:, None, None] * (spatial.dot(coms, coms)[:, None, None] * eye
+                                     - coms[:, :, None] * coms[:, None, :])
+    origin = inertias + shift
+    return jnp.concatenate([masses[:, None], masses[:, None] * coms,
+                            origin[:, [0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]], axis=-1)
+
+
+def _split(parameters):
+    """(m (N,), h = m c (N, 3), I_O (N, 3, 3)) from π (N, 10)."""
+    return parameters[:, 0], parameters[:, 1:4], parameters[:, _SYMMETRIC]
+
+
+def _momentum(mass, first_moment, inertia, omega, velocity):
+    """I (ω, v) = (I_O ω + h × v, m v + ω × h) about the link's origin."""
+    return (spatial.matvec(inertia, omega) + spatial.cross(first_moment, velocity),
+            mass[..., None] * velocity + spatial.cross(omega, first_moment))
+
+
+def link_motion(tree: RigidBodyTree, q, u, ud, gravity):
+    """Each link's spatial velocity (ω, v) and acceleration (ω̇, a) in its own axes (N, 3) each,
+    the acceleration measured from the world's (0, −g); and the poses of the links in their
+    parents. (Featherstone's spatial acceleration: a is the rate of v at the link's origin
+    as a point fixed in space, not the classical acceleration of the origin.)"""
+    rotation, origin, omega_j, velocity_j = tree.joint_motion(q, u)
+    alpha_j, accel_j = tree.joint_twists(ud)
+
+    def step(parent, link):
+        omega_p, velocity_p, alpha_p, accel_p = parent
+        rotation_pc, origin_pc, w_j, v_j, dw_j, dv_j = link
+        omega, velocity = spatial.motion_to_child(rotation_pc, origin_pc, omega_p, velocity_p)
+        omega, velocity = omega + w_j, velocity + v_j
+        alpha, accel = spatial.motion_to_child(rotation_pc, origin_pc, alpha_p, accel_p)
+        c_omega, c_velocity = spatial.cross_motion(omega, velocity, w_j, v_j)
+        return omega, velocity, alpha + dw_j + c_omega, accel + dv_j + c_velocity
+
+    zero = jnp.zeros(3, q.dtype)
+    states = tree.forward(step, (zero, zero, zero, -gravity),
+                          (rotation, origin, omega_j, velocity_j, alpha_j, accel_j))
+    return states, (rotation, origin)
+
+
+def newton_euler(tree: RigidBodyTree, t, q, u, ud, p, parameters=None, loads=True):
+    """τ = M u̇ + c(q, u) − g(q) − Jᵀ f^ext by the recursive Newton–Euler algorithm: the
+    forces along the speeds that produce the accelerations u̇ at (q, u). `parameters`: the
+    links' inertial parameters π (N, 10) in place of the tree's (τ is linear in them); `loads`:
+    whether the tree's link loads count as f^ext. Joint forces, springs and dampers are not
+    included (they are what the joints supply)."""
+    dtype = q.dtype
+    if parameters is None:
+        parameters = inertial_parameters(tree, p, dtype)
+    (omega, velocity, alpha, accel), (rotation, origin) = link_motion(
+        tree, q, u, ud, tree.gravity_vector(p, dtype))
+    mass, first_moment, inertia = _split(parameters)
+    moment_a, force_a = _momentum(mass, first_moment, inertia, alpha, accel)
+    moment_v, force_v = _momentum(mass, first_moment, inertia, omega, velocity)
+    moment_b, force_b = spatial.cross_force(omega, velocity, moment_v, force_v)
+    moment, force = moment_a + moment_b, force_a + force_b
+    if loads and tree.loads:
+        external_moment, external_force = tree.load_wrenches(t, q, u, p)
+        moment, force = moment - external_moment, force - external_force
+
+    def inwards(accumulated, link):
+        rotation_pc, origin_pc, own_moment, own_force = link
+        total = (own_moment + accumulated[0], own_force + accumulated[1])
+        return total, spatial.force_to_parent(rotation_pc, origin_pc, *total)
+
+    zero = jnp.zeros(3, dtype)
+    transmitted, _ = tree.backward(inwards, (zero, zero), (rotation, origin, moment, force))
+    # τ_i = S_iᵀ f_i for every joint at once: the transpose of u ↦ S u.
+    _, transpose = jax.vjp(tree.joint_twists, u)
+    return transpose(transmitted)[0]
+
+
+def joint_forces(tree: RigidBodyTree, t, q, u, p):
+    """The forces along the speeds that the tree's joints already apply: `forces`, dampers,
+    springs and any potential other than gravity (−Kᵀ ∂V/∂q)."""
+    elastic = -jax.grad(tree.elastic_energy, argnums=1)(t, q, p)
+    _, transpose = jax.vjp(lambda u: tree.coordinate_rates(t, q, u, p), u)
+    return tree.joint_forces(t, q, u, p) + transpose(elastic)[0]
+
+
+@public_function()
+def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Array:
+    r"""The joint-force regressor Y (m, 10 N) of a tree: inverse dynamics is linear in the
+    links' inertial parameters,
+
+        M(q) u̇ + c(q, u) − g(q) = Y(q, u, u̇) π,
+
+    with π = `jaxdyn.inertial_parameters(tree, p).ravel()` (ten per link, links in the tree's
+    order: m, m c, I_O about the link's origin). Joint forces, springs, dampers and link loads
+    are not part of it (they do not scale with the inertial parameters). Stacking Y over
+    measured states turns identification from joint torques into linear least squares
+    (Atkeson, An and Hollerbach, 1986).
+
+    **Arguments:** the tree, coordinates q (n,), speeds u (m,), accelerations u̇ (m,), and p
+    (only gravity may depend on it). Formed as the Jacobian of the recursive Newton–Euler
+    forces in π (exact: they are linear). `jax.vmap` it over states.
+    """
+    q, u, ud = _checked(tree, q, u, ud)
+    n = len(tree.links)
+    t = jnp.zeros((), q.dtype)
+
+    def forces(parameters):
+        return newton_euler(tree, t, q, u, ud, p, parameters.reshape(n, 10), loads=False)
+
+    return jax.jacfwd(forces)(jnp.zeros(10 * n, q.dtype))
+
+
+@public_function()
+def energy_regressors(tree: RigidBodyTree, q, u, p=None) -> tuple[jax.Array, jax.Array]:
+    r"""(y_T, y_V), each (10 N,): the kinetic energy and the gravitational potential energy
+    are linear in the links' inertial parameters π (see `jaxdyn.inertial_parameters`),
+
+        T = y_T(q, u)·π,   T = Σ ½ (ω·I_O ω + 2 ω·(h × v) + m v·v),
+        V = y_V(q)·π,      V = −Σ g·(m r_O + R h),
+
+    with (ω, v) each link's spatial velocity at its origin in its axes, (R, r_O) its pose and
+    h = m c. The energy balance dE/dt = u·τ turns them into identification from energy
+    (Gautier and Khalil, 1988). Joint springs and user potentials are not included.
+    """
+    q, u, _ = _checked(tree, q, u)
+    n = len(tree.links)
+    t = jnp.zeros((), q.dtype)
+    rotation, origin, omega, velocity = tree.link_states(t, q, u, p)
+    gravity = tree.gravity_vector(p, q.dtype)
+
+    def kinetic(parameters):
+        mass, first_moment, inertia = _split(parameters.reshape(n, 10))
+        moment, force = _momentum(mass, first_moment, inertia, omega, velocity)
+        return 0.5 * jnp.sum(spatial.dot(omega, moment) + spatial.dot(velocity, force))
+
+    def potential(parameters):
+        mass, first_moment, _ = _split(parameters.reshape(n, 10))
+        centres = mass[:, None] * origin + spatial.matvec(rotation, first_moment)
+        return -jnp.sum(spatial.dot(centres, gravity))
+
+    zero = jnp.zeros(10 * n, q.dtype)
+    return jax.grad(kinetic)(zero), jax.grad(potential)(zero)

@@ -1,0 +1,178 @@
+"""Kinematics of named frames of a tree, its centre of mass and its centroidal momentum.
+
+A frame is a link of a `RigidBodyTree`, found by name (a URDF file's every link, those attached
+by fixed joints included), optionally with its origin moved to a `point` given in the link's
+axes (a tool tip); its axes are the link's. Velocities are spatial motion vectors in jaxdyn's
+order (ω, v), v the velocity of the frame's origin, expressed
+
+- `axes="world"`: in the world's axes (Pinocchio's LOCAL_WORLD_ALIGNED), or
+- `axes="local"`: in the frame's own axes (Pinocchio's LOCAL),
+
+and the frame Jacobian J (6, m) maps the speeds to them, (ω, v) = J(q) u (Featherstone, Rigid
+Body Dynamics Algorithms, 2008, §4.6; Pinocchio lists v before ω). Accelerations are classical:
+ω̇ and the second derivative of the origin's position, (ω̇, v̇) = J u̇ + J̇ u, formed as one JVP
+of the velocity along (q̇ = K u, u̇).
+
+The centroidal momentum (Orin, Goswami and Lee, 2013) is h_G = (k_G, l), the angular momentum
+about the centre of mass and the linear momentum, in world axes; h_G = A_G(q) u with A_G the
+centroidal momentum matrix.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._state import public_function
+from . import spatial
+from .tree import RigidBodyTree, checked_state as _checked
+
+_AXES = ("world", "local")
+
+
+def _index(tree, frame):
+    names = [link.name for link in tree.links]
+    if isinstance(frame, str):
+        if frame not in names:
+            close = [n for n in names if frame.lower() in n.lower()]
+            hint = f" Did you mean one of {close}?" if close else f" Its links: {names}."
+            raise ValueError(f"The tree has no link named {frame!r}.{hint}")
+        return names.index(frame)
+    if isinstance(frame, (int, np.integer)) and -len(names) <= frame < len(names):
+        return int(frame) % len(names)
+    raise ValueError(f"A frame is a link's name (or index), got {frame!r}.")
+
+
+def _point(point, dtype):
+    point = jnp.zeros(3, dtype) if point is None else jnp.asarray(point, dtype)
+    if point.shape != (3,):
+        raise ValueError(f"point must be a 3-vector in the link's axes, got shape {point.shape}.")
+    return point
+
+
+def _check_axes(axes):
+    if axes not in _AXES:
+        raise ValueError(f"axes must be 'world' or 'local', got {axes!r}.")
+
+
+@public_function(num_static=2)
+def frame_pose(tree: RigidBodyTree, frame, q, p=None, *, point=None):
+    """(R, r): the frame's orientation (its axes as the columns of R, (3, 3)) and its origin
+    (3,) in the world, at coordinates q.
+
+    **Arguments:** the tree, the frame (a link's name or index), q (n,); `point`: the origin in
+    the link's axes (default the link's own origin).
+    """
+    q, _, _ = _checked(tree, q)
+    i = _index(tree, frame)
+    rotations, origins = tree.link_poses(jnp.zeros((), q.dtype), q, p)
+    return rotations[i], origins[i] + rotations[i] @ _point(point, q.dtype)
+
+
+def _velocity(tree, i, point, axes, q, u, p):
+    rotations, _, omega, velocity = tree.link_states(jnp.zeros((), q.dtype), q, u, p)
+    omega, velocity = omega[i], velocity[i] + spatial.cross(omega[i], point)
+    if axes == "world":
+        omega, velocity = rotations[i] @ omega, rotations[i] @ velocity
+    return jnp.concatenate([omega, velocity])
+
+
+@public_function(num_static=2)
+def frame_velocity(tree: RigidBodyTree, frame, q, u, p=None, *, point=None, axes="world"):
+    """(ω, v) (6,): the frame's angular velocity and its origin's velocity, in world or local
+    axes (module docstring)."""
+    _check_axes(axes)
+    q, u, _ = _checked(tree, q, u)
+    return _velocity(tree, _index(tree, frame), _point(point, q.dtype), axes, q, u, p)
+
+
+@public_function(num_static=2)
+def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="world"):
+    """J (6, m) with (ω, v) = J(q) u: rows ω then v, in world or local axes (module
+    docstring); the Jacobian of the velocity in the speeds (exact: it is linear in them)."""
+    _check_axes(axes)
+    q, _, _ = _checked(tree, q)
+    i, point = _index(tree, frame), _point(point, q.dtype)
+    zero = jnp.zeros(tree.num_speeds, q.dtype)
+    return jax.jacfwd(lambda u: _velocity(tree, i, point, axes, q, u, p))(zero)
+
+
+@public_function(num_static=2)
+def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=None,
+                       axes="world"):
+    """(ω̇, v̇) (6,): the classical accelerations of the frame, J u̇ + J̇ u: the rate of its
+    angular velocity and the second derivative of its origin's position, in world or local
+    axes (for local axes, the world-axes rates expressed in the frame's axes)."""
+    _check_axes(axes)
+    q, u, ud = _checked(tree, q, u, ud)
+    i, point = _index(tree, frame), _point(point, q.dtype)
+    qd = tree.coordinate_rates(jnp.zeros((), q.dtype), q, u, p)
+    _, rates = jax.jvp(lambda q, u: _velocity(tree, i, point, "world", q, u, p), (q, u),
+                       (qd, ud))
+    if axes == "local":
+        rotation = tree.link_poses(jnp.zeros((), q.dtype), q, p)[0][i]
+        rates = jnp.concatenate([rotation.T @ rates[:3], rotation.T @ rates[3:]])
+    return rates
+
+
+def _mass_and_centres(tree, q, p):
+    masses, _, _ = tree.link_inertias(p, q.dtype)
+    centres, rotations = tree.body_poses(jnp.zeros((), q.dtype), q, p)
+    return masses, centres, rotations
+
+
+@public_function()
+def centre_of_mass(tree: RigidBodyTree, q, p=None):
+    """c = Σ m_i r_Gi / Σ m_i (3,), in the world."""
+    q, _, _ = _checked(tree, q)
+    masses, centres, _ = _mass_and_centres(tree, q, p)
+    return masses @ centres / jnp.sum(masses)
+
+
+def _centre_of_mass_velocity(tree, q, u, p):
+    masses, _ = tree.inertias(p, q.dtype)
+    velocities, _ = tree.body_velocities(jnp.zeros((), q.dtype), q, u, p)
+    return masses @ velocities / jnp.sum(masses)
+
+
+@public_function()
+def centre_of_mass_velocity(tree: RigidBodyTree, q, u, p=None):
+    """ċ = Σ m_i v_Gi / Σ m_i (3,), world axes."""
+    q, u, _ = _checked(tree, q, u)
+    return _centre_of_mass_velocity(tree, q, u, p)
+
+
+@public_function()
+def centre_of_mass_jacobian(tree: RigidBodyTree, q, p=None):
+    """J_c (3, m) with ċ = J_c(q) u (world axes)."""
+    q, _, _ = _checked(tree, q)
+    zero = jnp.zeros(tree.num_speeds, q.dtype)
+    return jax.jacfwd(lambda u: _centre_of_mass_velocity(tree, q, u, p))(zero)
+
+
+def _centroidal_momentum(tree, q, u, p):
+    masses, inertias = tree.inertias(p, q.dtype)
+    t = jnp.zeros((), q.dtype)
+    velocities, omega = tree.body_velocities(t, q, u, p)
+    centres, rotations = tree.body_poses(t, q, p)
+    centre = masses @ centres / jnp.sum(masses)
+    linear = masses[:, None] * velocities
+    spin = spatial.matvec(rotations, spatial.matvec(inertias, omega))
+    angular = jnp.sum(spatial.cross(centres - centre[None], linear) + spin, axis=0)
+    return jnp.concatenate([angular, jnp.sum(linear, axis=0)])
+
+
+@public_function()
+def centroidal_momentum(tree: RigidBodyTree, q, u, p=None):
+    """h_G = (k_G, l) (6,): the angular momentum about the centre of mass,
+    Σ (r_Gi − c) × m_i v_Gi + R_i I_i ω_i, and the linear momentum Σ m_i v_Gi, in world axes."""
+    q, u, _ = _checked(tree, q, u)
+    return _centroidal_momentum(tree, q, u, p)
+
+
+@public_function()
+def centroidal_momentum_matrix(tree: RigidBodyTree, q, p=None):
+    """A_G (6, m) with h_G = A_G(q) u: rows the angular momentum about the centre of mass, then
+    the linear momentum, world axes."""
+    q, _, _ = _checked(tree, q)
+    zero = jnp.zeros(tree.num_speeds, q.dtype)
+    return jax.jacfwd(lambda u: _centroidal_momentum(tree, q, u, p))(zero)

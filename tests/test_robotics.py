@@ -1,0 +1,393 @@
+"""The rigid-body algorithms of robotics: inverse dynamics (recursive Newton–Euler and
+`residual` on every formulation), frame kinematics and Jacobians, centre of mass, centroidal
+momentum, and the inertial-parameter regressors.
+
+Oracles: Pinocchio on the Panda arm (fixed base, fixed and prismatic joints) and on a small
+floating-base robot written here as URDF (the quadruped Solo-12 in the slow set); closed forms
+for a planar two-link arm and a pendulum; finite differences for the gradients.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdyn
+
+from helpers import assert_close, central_difference
+
+pin = pytest.importorskip("pinocchio")
+pytest.importorskip("yourdfpy")
+from robots import Robot, robot_file  # noqa: E402  (needs Pinocchio)
+
+TOL = 1e-10  # relative to the largest entry of Pinocchio's value
+
+
+def _close(ours, theirs, err_msg=""):
+    theirs = np.asarray(theirs)
+    assert_close(ours, theirs, rtol=0, atol=TOL * max(1.0, np.max(np.abs(theirs))),
+                 err_msg=err_msg)
+
+
+def _angular_first(x):
+    """Pinocchio's (v, ω) rows → jaxdyn's (ω, v)."""
+    return np.concatenate([x[3:], x[:3]], axis=0)
+
+
+def _no_root_mass(robot):
+    """Pinocchio leaves the link fixed to the world out of the centre of mass, the centroidal
+    momentum and the potential energy (it does not move); jaxdyn counts every link. Compared
+    with the root's mass set to zero."""
+    if robot.floating:
+        return robot.p
+    root = robot.tree.links[0].name
+    return {**robot.p, root: {**robot.p[root], "mass": jnp.zeros(())}}
+
+
+def _pinocchio_references(robot, frames, num_states=3, seed=0):
+    model, data = robot.model, robot.data
+    (q_pin, v_pin, a_pin), (q, u, ud) = robot.random_states(num_states, seed)
+    out = {name: [] for name in ("tau", "com", "vcom", "Jcom", "Ag", "hg", "Y", "yT", "yV",
+                                 "T", "V")}
+    out["frames"] = {f: {k: [] for k in ("R", "r", "J", "J_local", "v_local", "a", "a_local")}
+                     for f in frames}
+    for x, v, a in zip(q_pin, v_pin, a_pin):
+        out["tau"].append(pin.rnea(model, data, x, v, a).copy())
+        pin.forwardKinematics(model, data, x, v, a)
+        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, data, x)
+        for f in frames:
+            fid, record = model.getFrameId(f), out["frames"][f]
+            record["R"].append(data.oMf[fid].rotation.copy())
+            record["r"].append(data.oMf[fid].translation.copy())
+            for key, axes in (("J", pin.LOCAL_WORLD_ALIGNED), ("J_local", pin.LOCAL)):
+                record[key].append(_angular_first(pin.getFrameJacobian(model, data, fid, axes)))
+            velocity = pin.getFrameVelocity(model, data, fid, pin.LOCAL)
+            record["v_local"].append(np.concatenate([velocity.angular, velocity.linear]))
+            for key, axes in (("a", pin.LOCAL_WORLD_ALIGNED), ("a_local", pin.LOCAL)):
+                classical = pin.getFrameClassicalAcceleration(model, data, fid, axes)
+                record[key].append(np.concatenate([classical.angular, classical.linear]))
+        out["com"].append(pin.centerOfMass(model, data, x, v).copy())
+        out["vcom"].append(data.vcom[0].copy())
+        out["Jcom"].append(pin.jacobianCenterOfMass(model, data, x).copy())
+        out["Ag"].append(_angular_first(pin.ccrba(model, data, x, v)))
+        out["hg"].append(np.concatenate([data.hg.angular, data.hg.linear]))
+        out["Y"].append(pin.computeJointTorqueRegressor(model, data, x, v, a).copy())
+        out["yT"].append(np.ravel(pin.computeKineticEnergyRegressor(model, data, x, v)))
+        out["yV"].append(np.ravel(pin.computePotentialEnergyRegressor(model, data, x)))
+        out["T"].append(pin.computeKineticEnergy(model, data, x, v))
+        out["V"].append(pin.computePotentialEnergy(model, data, x))
+    stacked = {k: np.stack(v) for k, v in out.items() if k != "frames"}
+    stacked["frames"] = {f: {k: np.stack(v) for k, v in d.items()}
+                         for f, d in out["frames"].items()}
+    return stacked, (q, u, ud)
+
+
+def _ours(robot, frames, q, u, ud):
+    """Everything jaxdyn computes, for stacked states: one compiled program."""
+    tree, p, p_moving = robot.tree, robot.p, _no_root_mass(robot)
+    dynamics = jaxdyn.ArticulatedBody(tree)
+
+    @jax.jit
+    @jax.vmap
+    def at(q, u, ud):
+        out = {"tau": dynamics.residual(0.0, q, u, ud, p),
+               "com": jaxdyn.centre_of_mass(tree, q, p_moving),
+               "vcom": jaxdyn.centre_of_mass_velocity(tree, q, u, p_moving),
+               "Jcom": jaxdyn.centre_of_mass_jacobian(tree, q, p_moving),
+               "Ag": jaxdyn.centroidal_momentum_matrix(tree, q, p_moving),
+               "hg": jaxdyn.centroidal_momentum(tree, q, u, p_moving),
+               "Y": jaxdyn.inverse_dynamics_regressor(tree, q, u, ud, p),
+               "frames": {}}
+        out["yT"], out["yV"] = jaxdyn.energy_regressors(tree, q, u, p)
+        for f in frames:
+            rotation, origin = jaxdyn.frame_pose(tree, f, q, p)
+            out["frames"][f] = dict(
+                R=rotation, r=origin, J=jaxdyn.frame_jacobian(tree, f, q, p),
+                J_local=jaxdyn.frame_jacobian(tree, f, q, p, axes="local"),
+                v_local=jaxdyn.frame_velocity(tree, f, q, u, p, axes="local"),
+                a=jaxdyn.frame_acceleration(tree, f, q, u, ud, p),
+                a_local=jaxdyn.frame_acceleration(tree, f, q, u, ud, p, axes="local"))
+        return out
+
+    return at(q, u, ud)
+
+
+def _compare_with_pinocchio(robot, frames):
+    theirs, (q, u, ud) = _pinocchio_references(robot, frames)
+    ours = _ours(robot, frames, q, u, ud)
+    perm = robot.permutation  # jaxdyn's speeds → Pinocchio's
+
+    def speeds_last(x):  # (…, m) in jaxdyn's speeds → Pinocchio's
+        return np.einsum("...j,ij->...i", np.asarray(x), perm)
+
+    _close(speeds_last(ours["tau"]), theirs["tau"], "inverse dynamics (rnea)")
+    for f in frames:
+        for key in ("R", "r", "v_local", "a", "a_local"):
+            _close(ours["frames"][f][key], theirs["frames"][f][key], f"{f}: {key}")
+        for key in ("J", "J_local"):
+            _close(speeds_last(ours["frames"][f][key]), theirs["frames"][f][key], f"{f}: {key}")
+    for key in ("com", "vcom", "hg"):
+        _close(ours[key], theirs[key], key)
+    for key in ("Jcom", "Ag"):
+        _close(speeds_last(ours[key]), theirs[key], key)
+    # The regressors: Pinocchio's columns are its joints' bodies (links attached by fixed
+    # joints merged in, parameters in the joint's frame: the moving link's frame); each
+    # equals jaxdyn's block of that link. Y π and the energies hold with jaxdyn's own π.
+    names = [link.name for link in robot.tree.links]
+    pi = np.asarray(jaxdyn.inertial_parameters(robot.tree, robot.p)).ravel()
+    pi_moving = np.asarray(jaxdyn.inertial_parameters(robot.tree, _no_root_mass(robot))).ravel()
+    for j, link in robot.joint_link.items():
+        ours_block = slice(10 * names.index(link), 10 * names.index(link) + 10)
+        theirs_block = slice(10 * (j - 1), 10 * j)
+        _close(speeds_last(ours["Y"][:, :, ours_block].swapaxes(1, 2)).swapaxes(1, 2),
+               theirs["Y"][:, :, theirs_block], f"regressor of {link}")
+        _close(ours["yT"][:, ours_block], theirs["yT"][:, theirs_block], f"y_T of {link}")
+        _close(ours["yV"][:, ours_block], theirs["yV"][:, theirs_block], f"y_V of {link}")
+    _close(speeds_last(np.asarray(ours["Y"]) @ pi), theirs["tau"], "Y π")
+    _close(np.asarray(ours["yT"]) @ pi, theirs["T"], "y_T π")
+    _close(np.asarray(ours["yV"]) @ pi_moving, theirs["V"], "y_V π")
+
+
+@pytest.fixture(scope="module")
+def panda():
+    return Robot.load(robot_file("panda.urdf"))
+
+
+def test_panda_against_pinocchio(panda):
+    """Inverse dynamics, frames (a revolute link, the hand on a fixed joint, a finger on a
+    prismatic joint, the tool centre point), centre of mass, centroidal momentum and the
+    regressors of the Panda arm at random states, against Pinocchio to 1e-10."""
+    _compare_with_pinocchio(panda, ["panda_link3", "panda_hand", "panda_leftfinger",
+                                    "panda_hand_tcp"])
+
+
+FLOATING_URDF = """<robot name="hopper">
+  <link name="base"><inertial><origin xyz="0.02 -0.01 0.03" rpy="0.1 0.2 0.3"/><mass value="3.0"/>
+    <inertia ixx="0.05" ixy="0.002" ixz="-0.001" iyy="0.07" iyz="0.003" izz="0.09"/></inertial></link>
+  <link name="thigh"><inertial><origin xyz="0 0 -0.15" rpy="0 0 0"/><mass value="0.8"/>
+    <inertia ixx="0.006" ixy="0" ixz="0" iyy="0.006" iyz="0" izz="0.001"/></inertial></link>
+  <link name="shank"><inertial><origin xyz="0.01 0 -0.12" rpy="0 0.3 0"/><mass value="0.4"/>
+    <inertia ixx="0.003" ixy="0.0001" ixz="0" iyy="0.002" iyz="0" izz="0.0005"/></inertial></link>
+  <link name="foot"><inertial><origin xyz="0 0 -0.02" rpy="0 0 0"/><mass value="0.1"/>
+    <inertia ixx="0.0001" ixy="0" ixz="0" iyy="0.0001" iyz="0" izz="0.0001"/></inertial></link>
+  <link name="slider"><inertial><origin xyz="0 0.01 0" rpy="0 0 0"/><mass value="0.2"/>
+    <inertia ixx="0.0002" ixy="0" ixz="0" iyy="0.0003" iyz="0" izz="0.0001"/></inertial></link>
+  <joint name="hip" type="revolute"><parent link="base"/><child link="thigh"/>
+    <origin xyz="0.1 0.05 -0.05" rpy="0.2 0 0.1"/><axis xyz="0 1 0"/>
+    <limit lower="-2" upper="2" effort="10" velocity="10"/></joint>
+  <joint name="knee" type="revolute"><parent link="thigh"/><child link="shank"/>
+    <origin xyz="0 0 -0.3" rpy="0 0 0"/><axis xyz="0.6 0.8 0"/>
+    <limit lower="-2" upper="2" effort="10" velocity="10"/></joint>
+  <joint name="ankle" type="fixed"><parent link="shank"/><child link="foot"/>
+    <origin xyz="0 0.02 -0.25" rpy="0 0.4 0"/></joint>
+  <joint name="rail" type="prismatic"><parent link="base"/><child link="slider"/>
+    <origin xyz="-0.1 0 0.05" rpy="0 0 0.5"/><axis xyz="1 0 0"/>
+    <limit lower="-1" upper="1" effort="10" velocity="10"/></joint>
+</robot>"""
+
+
+@pytest.fixture(scope="module")
+def hopper(tmp_path_factory):
+    """A small floating-base robot: a free base, a two-joint leg ending in a foot on a fixed
+    joint, and a slider on a prismatic joint; off-diagonal inertias and rotated frames."""
+    path = tmp_path_factory.mktemp("urdf") / "hopper.urdf"
+    path.write_text(FLOATING_URDF)
+    return Robot.load(str(path), floating=True)
+
+
+def test_floating_base_against_pinocchio(hopper):
+    _compare_with_pinocchio(hopper, ["base", "shank", "foot", "slider"])
+
+
+@pytest.mark.slow
+def test_quadruped_against_pinocchio():
+    _compare_with_pinocchio(Robot.load(robot_file("solo12.urdf"), floating=True),
+                            ["base_link", "FL_FOOT", "HR_LOWER_LEG"])
+
+
+def test_gradients_against_finite_differences(hopper):
+    """∂/∂q of inverse dynamics, a frame's pose and Jacobian, the centre of mass, the
+    centroidal momentum matrix and the regressor, forward mode against central differences;
+    and ∂τ/∂(mass) by reverse mode."""
+    tree, p = hopper.tree, hopper.p
+    _, (q, u, ud) = hopper.random_states(1, seed=3)
+    q, u, ud = q[0], u[0], ud[0]
+    dynamics = jaxdyn.ArticulatedBody(tree)
+
+    def everything(q, p):
+        rotation, origin = jaxdyn.frame_pose(tree, "foot", q, p, point=(0.01, 0.0, -0.03))
+        return jnp.concatenate([
+            dynamics.residual(0.0, q, u, ud, p), rotation.ravel(), origin,
+            jaxdyn.frame_jacobian(tree, "foot", q, p).ravel(),
+            jaxdyn.frame_acceleration(tree, "slider", q, u, ud, p, axes="local"),
+            jaxdyn.centre_of_mass(tree, q, p),
+            jaxdyn.centroidal_momentum_matrix(tree, q, p).ravel(),
+            jaxdyn.inverse_dynamics_regressor(tree, q, u, ud, p).ravel()])
+
+    compiled = jax.jit(everything)
+    derivative = jax.jit(jax.jacfwd(everything))(q, p)
+    numeric = central_difference(lambda x: compiled(x, p), q, step=1e-6)
+    assert_close(derivative, numeric, rtol=1e-6, atol=1e-6 * np.max(np.abs(numeric)))
+
+    def torque_norm(mass):
+        masses = {**p, "shank": {**p["shank"], "mass": mass}}
+        return jnp.sum(dynamics.residual(0.0, q, u, ud, masses) ** 2)
+
+    gradient = jax.grad(torque_norm)(p["shank"]["mass"])
+    numeric = central_difference(lambda m: torque_norm(jnp.asarray(m)),
+                                 np.asarray(p["shank"]["mass"]))
+    assert_close(gradient, numeric, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Closed forms
+# ---------------------------------------------------------------------------------------------
+
+ARM = {"m1": 1.2, "m2": 0.7, "l1": 0.9, "l2": 0.6, "g": 9.81}
+
+
+def _planar_arm():
+    """Two uniform rods in the xy plane, hinged about z, gravity along −y."""
+    links = []
+    for i, (m, l) in enumerate(((ARM["m1"], ARM["l1"]), (ARM["m2"], ARM["l2"]))):
+        links.append(jaxdyn.Link(
+            f"rod{i}", jaxdyn.Revolute((0, 0, 1)), parent=None if i == 0 else "rod0",
+            translation=(0.0 if i == 0 else ARM["l1"], 0.0, 0.0), mass=m,
+            com=(l / 2, 0.0, 0.0), inertia=jnp.diag(jnp.array([0.0, 1.0, 1.0]) * m * l**2 / 12)))
+    links.append(jaxdyn.Link("tip", jaxdyn.Fixed(), parent="rod1",
+                             translation=(ARM["l2"], 0.0, 0.0)))
+    return jaxdyn.RigidBodyTree(links, gravity=jnp.array([0.0, -ARM["g"], 0.0]))
+
+
+def _planar_arm_by_hand(q, qd, qdd):
+    """The two-link arm's torques M q̈ + C q̇ + G (Spong, Hutchinson and Vidyasagar, Robot
+    Modeling and Control, §7.3) and the tip's Jacobian, rows (ω_z, ẋ, ẏ)."""
+    m1, m2, l1, l2, g = (ARM[k] for k in ("m1", "m2", "l1", "l2", "g"))
+    lc1, lc2, i1, i2 = l1 / 2, l2 / 2, m1 * l1**2 / 12, m2 * l2**2 / 12
+    c2, s2 = np.cos(q[1]), np.sin(q[1])
+    m11 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * c2) + i1 + i2
+    m12 = m2 * (lc2**2 + l1 * lc2 * c2) + i2
+    m22 = m2 * lc2**2 + i2
+    h = -m2 * l1 * lc2 * s2
+    coriolis = np.array([h * qd[1] * (2 * qd[0] + qd[1]), -h * qd[0] ** 2])
+    gravity = np.array([(m1 * lc1 + m2 * l1) * g * np.cos(q[0]) + m2 * lc2 * g * np.cos(q.sum()),
+                        m2 * lc2 * g * np.cos(q.sum())])
+    tau = np.array([[m11, m12], [m12, m22]]) @ qdd + coriolis + gravity
+    s1, c1, s12, c12 = np.sin(q[0]), np.cos(q[0]), np.sin(q.sum()), np.cos(q.sum())
+    jacobian = np.array([[1.0, 1.0], [-l1 * s1 - l2 * s12, -l2 * s12],
+                         [l1 * c1 + l2 * c12, l2 * c12]])
+    return tau, jacobian
+
+
+def test_planar_arm_against_its_textbook_equations():
+    tree = _planar_arm()
+    rng = np.random.default_rng(1)
+    for q, qd, qdd in rng.normal(size=(3, 3, 2)):
+        tau, jacobian = _planar_arm_by_hand(q, qd, qdd)
+        assert_close(jaxdyn.ArticulatedBody(tree).residual(0.0, q, qd, qdd), tau, rtol=1e-12)
+        ours = jaxdyn.frame_jacobian(tree, "tip", q)
+        assert_close(ours[np.array([2, 3, 4])], jacobian, rtol=1e-12, atol=1e-14)
+        assert_close(ours[np.array([0, 1, 5])], np.zeros((3, 2)), rtol=0, atol=1e-15)
+        _, origin = jaxdyn.frame_pose(tree, "tip", q)
+        assert_close(origin[:2], [ARM["l1"] * np.cos(q[0]) + ARM["l2"] * np.cos(q.sum()),
+                                  ARM["l1"] * np.sin(q[0]) + ARM["l2"] * np.sin(q.sum())],
+                     rtol=1e-13)
+
+
+def test_pendulum_regressor_closed_form():
+    """A link swinging about z under gravity along −y: τ = I_O,zz θ̈ + g (m c_x cos θ −
+    m c_y sin θ), so the regressor row is (0, g cos θ, −g sin θ, 0, 0, 0, 0, 0, 0, θ̈) whatever
+    the link's parameters; and the energies' rows (½ θ̇² in I_zz; g (sin θ, cos θ) in m c)."""
+    g = 9.81
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("bob", jaxdyn.Revolute((0, 0, 1)), mass=2.0,
+                                             com=(0.3, -0.1, 0.05),
+                                             inertia=jnp.diag(jnp.array([0.1, 0.2, 0.3])))],
+                                gravity=jnp.array([0.0, -g, 0.0]))
+    theta, rate, acceleration = 0.7, -1.3, 2.1
+    q, u, ud = jnp.array([theta]), jnp.array([rate]), jnp.array([acceleration])
+    row = np.zeros(10)
+    row[[1, 2, 9]] = g * np.cos(theta), -g * np.sin(theta), acceleration
+    assert_close(jaxdyn.inverse_dynamics_regressor(tree, q, u, ud), row[None], rtol=1e-14,
+                 atol=1e-14)
+    y_t, y_v = jaxdyn.energy_regressors(tree, q, u)
+    expected_t, expected_v = np.zeros(10), np.zeros(10)
+    expected_t[9] = 0.5 * rate**2
+    expected_v[[1, 2]] = g * np.sin(theta), g * np.cos(theta)
+    assert_close(y_t, expected_t, rtol=1e-14, atol=1e-15)
+    assert_close(y_v, expected_v, rtol=1e-14, atol=1e-15)
+    pi = np.asarray(jaxdyn.inertial_parameters(tree))[0]  # I_O = I_c + m (|c|² 1 − c cᵀ)
+    assert_close(pi[[0, 1, 2, 3]], [2.0, 0.6, -0.2, 0.1], rtol=1e-14)
+    assert_close(pi[9], 0.3 + 2.0 * (0.3**2 + 0.1**2), rtol=1e-14)
+    assert_close(pi[5], -2.0 * 0.3 * -0.1, rtol=1e-14)  # I_xy = −m c_x c_y
+
+
+# ---------------------------------------------------------------------------------------------
+# `residual` on every formulation
+# ---------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=None)
+def _loaded_arm():
+    """A spatial three-link arm with a spring, dampers, joint forces and a force on its tip."""
+    inertia = jnp.diag(jnp.array([0.02, 0.03, 0.04]))
+    links = [
+        jaxdyn.Link("a", jaxdyn.Revolute((0, 0, 1)), mass=1.0, com=(0.1, 0.0, 0.2),
+                    inertia=inertia, damping=0.3),
+        jaxdyn.Link("b", jaxdyn.Revolute((0, 1, 0)), parent="a", translation=(0.0, 0.0, 0.4),
+                    mass=0.8, com=(0.2, 0.0, 0.0), inertia=inertia, stiffness=2.0),
+        jaxdyn.Link("c", jaxdyn.Prismatic((1, 0, 0)), parent="b", translation=(0.4, 0.0, 0.0),
+                    mass=0.5, com=(0.1, 0.05, 0.0), inertia=inertia),
+    ]
+    load = jaxdyn.LinkLoad("c", force=lambda q, u, p: jnp.array([0.3, -0.2, 0.5]) * q[0],
+                           point=(0.1, 0.0, 0.0))
+    return jaxdyn.RigidBodyTree(links, gravity=jnp.array([0.0, 0.0, -9.81]),
+                                forces=lambda q, u, p: jnp.sin(q) - 0.1 * u, loads=[load])
+
+
+def test_residual_on_every_formulation():
+    """M u̇ − f from each formulation: zero along its own accelerations, equal across the
+    formulations (the articulated body's by Newton–Euler, the others from M and f), equal to
+    M (u̇ − u̇₀) for any u̇; and a controlled system's less B r."""
+    tree = _loaded_arm()
+    formulations = {"articulated body": jaxdyn.ArticulatedBody(tree),
+                    "Kane": jaxdyn.Kane.from_system(tree),
+                    "Gibbs-Appell": jaxdyn.GibbsAppell.from_system(tree),
+                    "Lagrange": jaxdyn.Lagrangian.from_system(tree)}
+    rng = np.random.default_rng(2)
+    q, u, ud = rng.normal(size=(3, 4, 3))
+    t = np.zeros(4)
+    reference = formulations["Kane"]
+    mass_matrix = reference.mass_matrix(t, q, u)
+    own = reference.accelerations(t, q, u)
+    expected = np.einsum("sij,sj->si", mass_matrix, ud - own)
+    for label, dynamics in formulations.items():
+        assert_close(dynamics.residual(t, q, u, ud), expected, rtol=1e-11, atol=1e-12,
+                     err_msg=label)
+        assert_close(dynamics.residual(t, q, u, dynamics.accelerations(t, q, u)),
+                     np.zeros_like(u), rtol=0, atol=1e-12, err_msg=label)
+    inputs = np.array([0.4, -0.7])
+    for label in ("articulated body", "Kane"):
+        controlled = jaxdyn.Controlled(formulations[label], [0, 2], inputs)
+        assert_close(controlled.residual(t, q, u, ud),
+                     expected - np.array([0.4, 0.0, -0.7]), rtol=1e-11, atol=1e-12,
+                     err_msg=label)
+
+
+def test_errors_name_the_problem(panda):
+    tree, q = panda.tree, panda.tree.neutral_configuration()
+    with pytest.raises(ValueError, match="no link named 'hand'.*panda_hand"):
+        jaxdyn.frame_pose(tree, "hand", q)
+    with pytest.raises(ValueError, match="axes must be 'world' or 'local'"):
+        jaxdyn.frame_jacobian(tree, "panda_hand", q, axes="LOCAL_WORLD_ALIGNED")
+    with pytest.raises(ValueError, match="point must be a 3-vector"):
+        jaxdyn.frame_pose(tree, "panda_hand", q, point=(0.0, 0.1))
+    with pytest.raises(ValueError, match="q has shape"):
+        jaxdyn.centre_of_mass(tree, q[:-1])
+    u = np.zeros(tree.num_speeds)
+    with pytest.raises(ValueError, match=r"u̇ \(ud\) must have shape \(9,\)"):
+        jaxdyn.inverse_dynamics_regressor(tree, q, u, u[:-1])
+    with pytest.raises(ValueError, match="RigidBodyTree"):
+        jaxdyn.centre_of_mass(jaxdyn.ArticulatedBody(tree), q)
