@@ -7,8 +7,6 @@ floating-base robot written here as URDF (the quadruped Solo-12 in the slow set)
 for a planar two-link arm and a pendulum; finite differences for the gradients.
 """
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -329,7 +327,6 @@ def test_pendulum_regressor_closed_form():
 # ---------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
 def _loaded_arm():
     """A spatial three-link arm with a spring, dampers, joint forces and a force on its tip."""
     inertia = jnp.diag(jnp.array([0.02, 0.03, 0.04]))

@@ -28,15 +28,15 @@ from .._state import public_function
 from .._system import spatial
 from .._system.tree import RigidBodyTree, checked_state as _checked
 
-#: The ten inertial parameters of a link, in order (Pinocchio's `toDynamicParameters` order):
-#: mass, first moments m c, and the inertia about the link's origin in its axes.
-PARAMETER_NAMES = ("m", "mc_x", "mc_y", "mc_z", "I_xx", "I_xy", "I_yy", "I_xz", "I_yz", "I_zz")
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
 
 
 def inertial_parameters(tree: RigidBodyTree, p=None, dtype=None) -> jax.Array:
-    """π (N, 10): each link's mass, first moments m c and inertia about its origin (link axes),
-    from the tree's masses, centres of mass and inertias about them (parallel-axis theorem)."""
+    """π (N, 10): each link's ten inertial parameters, from the tree's masses, centres of mass
+    and inertias about them (the parallel-axis theorem I_O = I_c + m (|c|² 1 − c cᵀ)), in
+    Pinocchio's order: (m, m c_x, m c_y, m c_z, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz), the inertia
+    about the link's origin in its axes. `.ravel()` gives the π of
+    `jaxdyn.inverse_dynamics_regressor` and `jaxdyn.energy_regressors`."""
     masses, coms, inertias = tree.link_inertias(p, dtype)
     eye = jnp.eye(3, dtype=coms.dtype)[None]
     shift = masses[:, None, None] * (spatial.dot(coms, coms)[:, None, None] * eye

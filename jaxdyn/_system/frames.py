@@ -114,17 +114,13 @@ def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=No
     return rates
 
 
-def _mass_and_centres(tree, q, p):
-    masses, _, _ = tree.link_inertias(p, q.dtype)
-    centres, rotations = tree.body_poses(jnp.zeros((), q.dtype), q, p)
-    return masses, centres, rotations
-
-
 @public_function()
 def centre_of_mass(tree: RigidBodyTree, q, p=None):
-    """c = Σ m_i r_Gi / Σ m_i (3,), in the world."""
+    """c = Σ m_i r_Gi / Σ m_i (3,), in the world. Every link counts, the root of a fixed base
+    too (Pinocchio leaves out the link fixed to the world)."""
     q, _, _ = _checked(tree, q)
-    masses, centres, _ = _mass_and_centres(tree, q, p)
+    masses, _, _ = tree.link_inertias(p, q.dtype)
+    centres, _ = tree.body_poses(jnp.zeros((), q.dtype), q, p)
     return masses @ centres / jnp.sum(masses)
 
 
