@@ -144,12 +144,14 @@ class AbstractDynamics(eqx.Module):
         inside a compiled loop of your own (this is what `simulate` integrates).
         """
         check_static_indexing(self.user_functions, t, q, u, p)
-        accelerations = equations_of_motion(self, t, q, u, p)[1]
+        _, accelerations, singular, nonfinite = equations_of_motion(self, t, q, u, p)
         if not throw:
             return accelerations
 
-        def causes():  # evaluated only where the accelerations are NaN
-            _, _, singular, nonfinite = equations_of_motion(self, t, q, u, p)
+        # The flags come with the accelerations (a few reductions); the cause that costs
+        # something (which constraints are singular) is sought only where u̇ is NaN. Forming
+        # the equations again in the failing branch would compile them twice.
+        def causes():
             constraints = singular & self.singular_constraints(t, q, u, p)
             return [(nonfinite, NONFINITE_FORCING), (constraints, SINGULAR_CONSTRAINTS),
                     (singular, SINGULAR_MASS_MATRIX)]

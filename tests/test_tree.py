@@ -2,7 +2,8 @@
 
 Oracles: Pinocchio (C++ rigid-body dynamics) on robot models of the `example-robot-data`
 package — a 7-dof arm with a gripper (Panda), a quadruped on a free-floating base (Solo-12) and
-a humanoid with 44 joints on a free-floating base (Talos); the N-link chain's equations written
+a humanoid with 44 joints on a free-floating base (Talos), a quadruped with 65 fixed joints
+(ANYmal-C); the N-link chain's equations written
 by hand; Euler's equations for a free body; closed forms for springs, dampers and loads;
 conservation of energy and momentum; finite differences for gradients.
 """
@@ -299,6 +300,64 @@ def test_pendulum_with_spring_damper_motor_and_tip_force():
         assert_close(dynamics.accelerations(0.0, np.array([theta]), np.array([omega]),
                                             {"m": m, "k": k}), [expected], rtol=1e-12,
                      err_msg=label)
+
+
+def test_fixed_joints_are_welded_into_their_parents():
+    """A rod about z on a stand welded to the world (placed at (0.1, 0.2, 0), turned by φ about
+    z), with a tool on a fixed joint at its tip (turned 90° about x: its inertia diag(a, b, c)
+    contributes b about z; centre of mass d beyond the tip; a horizontal force F_x at e beyond
+    the tip): (m l²/3 + m_t (l + d)² + b) θ̈ = −g (m l/2 + m_t (l + d)) sin(θ + φ)
+    + F_x (l + e) cos(θ + φ). The articulated-body algorithm runs on one link
+    (`merge_fixed`); Kane's equations on all three."""
+    m, l, g, m_t, d, e, fx, phi = 1.3, 0.7, 9.81, 0.4, 0.15, 0.25, 1.7, 0.3
+    a, b, c = 0.02, 0.05, 0.03
+    turn = np.array([[np.cos(phi), -np.sin(phi), 0.0], [np.sin(phi), np.cos(phi), 0.0],
+                     [0.0, 0.0, 1.0]])
+    tree = jaxdyn.RigidBodyTree([
+        jaxdyn.Link("stand", jaxdyn.Fixed(), translation=(0.1, 0.2, 0.0), rotation=turn,
+                    mass=5.0, com=(0.0, 0.3, 0.0), inertia=jnp.eye(3)),
+        jaxdyn.Link("rod", jaxdyn.Revolute((0, 0, 1)), parent="stand", mass=m,
+                    com=(0.0, -l / 2, 0.0),
+                    inertia=jnp.diag(jnp.array([1.0, 0.0, 1.0])) * m * l**2 / 12),
+        jaxdyn.Link("tool", jaxdyn.Fixed(), parent="rod", translation=(0.0, -l, 0.0),
+                    rotation=[[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
+                    mass=lambda p: p["m_t"], com=(0.0, 0.0, d),
+                    inertia=jnp.diag(jnp.array([a, b, c]))),
+    ], gravity=jnp.array([0.0, -g, 0.0]),
+        loads=[jaxdyn.LinkLoad("tool", force=lambda q, u, p: jnp.array([fx, 0.0, 0.0]),
+                               point=(0.0, 0.0, e)),
+               jaxdyn.LinkLoad("stand", force=lambda q, u, p: jnp.array([0.0, 1.0, 0.0]))])
+    assert [link.name for link in tree.merge_fixed().links] == ["rod"]
+    theta, omega = 0.6, -0.8
+    angle = theta + phi
+    expected = ((-g * (m * l / 2 + m_t * (l + d)) * np.sin(angle) + fx * (l + e) * np.cos(angle))
+                / (m * l**2 / 3 + m_t * (l + d)**2 + b))
+    for dynamics in (jaxdyn.ArticulatedBody(tree), jaxdyn.Kane.from_system(tree)):
+        assert_close(dynamics.accelerations(0.0, np.array([theta]), np.array([omega]),
+                                             {"m_t": m_t}), [expected], rtol=1e-12)
+
+
+@pytest.mark.parametrize("loop_max", [0, pytest.param(24, marks=pytest.mark.slow)])
+def test_a_robot_with_many_fixed_joints_against_pinocchio(loop_max, monkeypatch):
+    """ANYmal-C hangs 65 of its 78 links (feet, sensors, covers) on fixed joints: the
+    articulated-body algorithm welds them into 13 moving links, as Pinocchio does. Forward
+    dynamics and M against Pinocchio, in a scan whose floating base is taken before it
+    (`scan_head`) and (slow set) as straight-line code, the default for 13 links, which the
+    Panda checks by default."""
+    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", loop_max)
+    case = _pinocchio_case("anymal_c_simple_description/urdf/anymal.urdf", True, num_states=2)
+    perm, p = case["permutation"], case["p"]
+    assert len(case["tree"].links) == 78 and len(case["tree"].merge_fixed().links) == 13
+    assert case["tree"].merge_fixed().scan_head() == (13 if loop_max else 1)
+    dynamics = jaxdyn.ArticulatedBody(case["driven"])
+    p_tau = jax.vmap(lambda tau: {**p, "tau": tau})(jnp.asarray(case["tau"]))
+    accelerations = jax.vmap(dynamics.accelerations)(jnp.zeros(2), case["q"], case["u"], p_tau)
+    assert_close(np.einsum("ij,sj->si", perm, np.asarray(accelerations)),
+                 case["accelerations"], rtol=0,
+                 atol=1e-10 * np.max(np.abs(case["accelerations"])))
+    m = jax.vmap(dynamics.mass_matrix)(jnp.zeros(2), case["q"], case["u"], p_tau)
+    assert_close(np.einsum("ij,sjk,lk->sil", perm, np.asarray(m), perm), case["M"], rtol=0,
+                 atol=1e-10 * np.max(np.abs(case["M"])))
 
 
 def _floating_arm():

@@ -8,7 +8,6 @@ from .._dynamics import AbstractDynamics
 from .._linalg import ldl, ldl_solve
 from .._state import check_vector
 from .._system import spatial
-from .._system import tree as tree_module
 from .._system.tree import RigidBodyTree
 from .kane import kane_equations
 from .newton_euler import joint_forces as newton_euler_joint_forces, newton_euler
@@ -63,6 +62,7 @@ class ArticulatedBody(AbstractDynamics):
     Joint forces τ gather `forces`, the dampers, the springs and any potential other than
     gravity (−Kᵀ ∂V/∂q); loads enter as the links' external forces f_i. `mass_matrix` and
     `forcing` are formed as Kane's (partial velocities from the same recursive kinematics).
+    All three run on the tree with its fixed joints welded (`RigidBodyTree.merge_fixed`).
     This is the fast formulation for trees; the others agree with it to round-off.
 
     **Arguments:**
@@ -102,19 +102,20 @@ class ArticulatedBody(AbstractDynamics):
     def form_equations(self, t, q, u, p=None):
         """(M, f), formed as Kane's."""
         t, q, u = self._check(t, q, u)
-        return kane_equations(self.tree, None, t, q, u, p)
+        return kane_equations(self.tree.merge_fixed(), None, t, q, u, p)
 
     def form_accelerations(self, t, q, u, p=None, *, small):
         t, q, u = self._check(t, q, u)
-        return articulated_body_algorithm(self.tree, t, q, u, p)
+        return articulated_body_algorithm(self.tree.merge_fixed(), t, q, u, p)
 
     def form_residual(self, t, q, u, ud, p=None):
         """M u̇ − f by the recursive Newton–Euler algorithm (Featherstone §5.3), O(N): the
         links' inertial and gravitational forces and loads, less the joints' own forces."""
         t, q, u = self._check(t, q, u)
         ud = check_vector(ud, "u̇ (ud)", self.tree.num_speeds)
-        return (newton_euler(self.tree, t, q, u, ud, p)
-                - newton_euler_joint_forces(self.tree, t, q, u, p))
+        bodies = self.tree.merge_fixed()
+        return (newton_euler(bodies, t, q, u, ud, p)
+                - newton_euler_joint_forces(bodies, t, q, u, p))
 
 
 def _subspaces(tree):
@@ -141,8 +142,10 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
     subspaces_np, padded_np, columns = _subspaces(tree)
     n, width = padded_np.shape
     subspaces = jnp.asarray(subspaces_np, dtype)
-    # In a Python loop over the links, each sees its own joint's width (see `inwards`).
-    padded = padded_np if n <= tree_module.LOOP_MAX else jnp.asarray(padded_np, dtype)
+    # Links taken one by one see their own joint's width (see `inwards`); those in the scan
+    # the widest of theirs (a floating base is taken before the scan: `scan_head`).
+    head = tree.scan_head()
+    scan_width = max([1] + [link.joint.nv for link in tree.links[head:]])
     link_of, column_of = (np.array(x, dtype=np.int32) for x in zip(*columns)) if columns else \
         (np.zeros(0, np.int32), np.zeros(0, np.int32))
 
@@ -176,10 +179,10 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
     def inwards(accumulated, link):
         inertia_c, bias_c = accumulated
         x, own_inertia, own_bias, s, pad, torque, c = link
-        # Links taken one by one (a Python loop) see their own joint's width k (S and `pad` are
-        # NumPy constants): a floating base's six columns do not widen every other link's
-        # algebra. In a scan every link has the tree's widest joint, padded columns pinned.
-        k = max(1, int(np.sum(pad == 0))) if isinstance(pad, np.ndarray) else width
+        # Links taken one by one (a Python loop) see their own joint's width k (`pad` is a
+        # NumPy constant): a floating base's six columns do not widen every other link's
+        # algebra. In a scan every link has the scan's widest joint, padded columns pinned.
+        k = max(1, int(np.sum(pad == 0))) if isinstance(pad, np.ndarray) else scan_width
         s, pad, torque = s[:, :k], pad[:k], torque[:k]
         pinned = jnp.asarray(pad, dtype)  # a NumPy constant: in the state's dtype
         articulated = own_inertia + inertia_c
@@ -203,7 +206,7 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
 
     zero = (jnp.zeros((6, 6), dtype), jnp.zeros(6, dtype))
     (u_matrices, u_d_inv, d_inv_residuals, failures), _ = tree.backward(
-        inwards, zero, (transforms, inertia6, bias, subspaces, padded, tau_links,
+        inwards, zero, (transforms, inertia6, bias, subspaces, padded_np, tau_links,
                         bias_acceleration))
 
     # 3. accelerations outwards, from the world's (0, −g)

@@ -265,7 +265,7 @@ class Controlled(AbstractDynamics):
     def form_accelerations(self, t, q, u, p=None, *, small):
         if isinstance(self.dynamics, ArticulatedBody):  # B r joins the joint forces
             t = jnp.asarray(t, q.dtype)
-            return articulated_body_algorithm(self.dynamics.tree, t, q, u, p,
+            return articulated_body_algorithm(self.dynamics.tree.merge_fixed(), t, q, u, p,
                                               applied=self.applied(t, q, u, p))
         return accelerations_from_equations(self, t, q, u, p, small=small)
 

@@ -16,6 +16,7 @@ together; the recursion itself runs as a Python loop for small trees (straight-l
 order for large ones, so that compile time does not grow with the number of links.
 """
 
+import dataclasses
 from typing import Callable
 
 import equinox as eqx
@@ -27,7 +28,7 @@ from .._convention import call, scalar, vector
 from .._state import check_vector
 from . import spatial
 from .base import AbstractMultibody
-from .joints import AbstractJoint
+from .joints import AbstractJoint, Fixed
 
 # Trees with more links than this run their recursions as a `lax.scan` (compile time
 # independent of the number of links); smaller ones as a Python loop (straight-line code).
@@ -144,6 +145,46 @@ class LinkLoad(eqx.Module):
     torque: Callable | None = None
     point: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
                              converter=lambda x: _vector3(x, "A load's point"))
+
+
+class _Welded(eqx.Module):
+    """The mass, centre of mass or central inertia of links welded together by fixed joints,
+    in the axes of the first (the body): with link k placed at (R_k, r_k) in the body,
+
+        m = Σ m_k,   c = Σ m_k c'_k / m  (c'_k = r_k + R_k c_k),
+        I = Σ R_k I_k R_kᵀ + m_k (|d_k|² 1 − d_k d_kᵀ),   d_k = c'_k − c
+
+    (Huygens–Steiner). A body of no mass has its centre at its origin."""
+
+    links: tuple[Link, ...]
+    rotations: tuple = eqx.field(static=True)
+    translations: tuple = eqx.field(static=True)
+    part: str = eqx.field(static=True)
+
+    def __call__(self, p):
+        masses = [jnp.asarray(_value(link.mass, p)) for link in self.links]
+        dtype = jnp.result_type(*masses, float)
+        mass = sum(masses[1:], masses[0])
+        if self.part == "mass":
+            return mass
+        centres = [jnp.asarray(r, dtype) + jnp.asarray(rot, dtype) @ jnp.asarray(
+            _value(link.com, p), dtype) for link, rot, r in
+            zip(self.links, self.rotations, self.translations)]
+        first = sum((m * c for m, c in zip(masses, centres)), jnp.zeros(3, dtype))
+        # Massless bodies (URDF's dummy links) have their centre at the origin: a safe divisor
+        # keeps the derivative finite where the mass is zero.
+        massless = mass == 0
+        centre = jnp.where(massless, 0.0, first / jnp.where(massless, 1.0, mass))
+        if self.part == "com":
+            return centre
+        total = jnp.zeros((3, 3), dtype)
+        for link, m, c, rot in zip(self.links, masses, centres, self.rotations):
+            rot = jnp.asarray(rot, dtype)
+            if link.inertia is not None:
+                total = total + rot @ jnp.asarray(_value(link.inertia, p), dtype) @ rot.T
+            d = c - centre
+            total = total + m * (jnp.dot(d, d) * jnp.eye(3, dtype=dtype) - jnp.outer(d, d))
+        return total
 
 
 class RigidBodyTree(AbstractMultibody):
@@ -263,6 +304,55 @@ class RigidBodyTree(AbstractMultibody):
         translations = np.array([np.asarray(link.translation) for link in self.links])
         return rotations, translations
 
+    def merge_fixed(self) -> "RigidBodyTree":
+        """The same dynamics on fewer links: every link on a `Fixed` joint is welded to its
+        parent (masses, centres of mass and inertias combined, loads moved onto it), and links
+        fixed to the world are dropped (with the links that hang from them re-placed in the
+        world). Coordinates, speeds, gravity, forces and springs are unchanged, so forward and
+        inverse dynamics and the mass matrix are the same, on fewer links: URDF models hang
+        sensors, feet and tool frames on fixed joints (ANYmal-C's 78 links weld into 13).
+        `ArticulatedBody` computes on this tree; frames and energies keep every link.
+        """
+        if not any(isinstance(link.joint, Fixed) for link in self.links):
+            return self
+        # Each link's body (None: the world) and its placement in the body's frame.
+        body_of, members, links = {}, {}, []
+        for link in self.links:
+            rotation, translation = np.asarray(link.rotation), np.asarray(link.translation)
+            if link.parent is None:
+                body, base_r, base_t = None, np.eye(3), np.zeros(3)
+            else:
+                body, base_r, base_t = body_of[link.parent]
+            rotation, translation = base_r @ rotation, base_t + base_r @ translation
+            if isinstance(link.joint, Fixed):
+                body_of[link.name] = (body, rotation, translation)
+                if body is not None:
+                    members[body].append((link, rotation, translation))
+            else:
+                body_of[link.name] = (link.name, np.eye(3), np.zeros(3))
+                members[link.name] = [(link, np.eye(3), np.zeros(3))]
+                links.append(dataclasses.replace(link, parent=body, rotation=rotation,
+                                                 translation=translation))
+        if not links:  # nothing moves: keep the tree as it is
+            return self
+        for i, link in enumerate(links):
+            welded = members[link.name]
+            if len(welded) > 1:
+                parts = {part: _Welded(tuple(w[0] for w in welded),
+                                       tuple(_rotation(w[1]) for w in welded),
+                                       tuple(_vector3(w[2], "translation") for w in welded),
+                                       part)
+                         for part in ("mass", "com", "inertia")}
+                links[i] = dataclasses.replace(link, **parts)
+        loads = []
+        for load in self.loads:
+            body, rotation, translation = body_of[load.link]
+            if body is not None:  # loads on links fixed to the world do no work
+                loads.append(LinkLoad(body, load.force, load.torque,
+                                      translation + rotation @ np.asarray(load.point)))
+        return RigidBodyTree(links, gravity=self.gravity, forces=self.forces, loads=loads,
+                             potential=self.potential, time_dependent=self.time_dependent)
+
     # -- joint motion and the recursion ---------------------------------------------------------
 
     def _by_link(self, pieces, dtype):
@@ -295,68 +385,98 @@ class RigidBodyTree(AbstractMultibody):
     def _is_chain(self):
         return all(parent == i - 1 for i, parent in enumerate(self.parents))
 
+    def scan_head(self) -> int:
+        """How many leading links a recursion takes one by one before its `lax.scan` (trees of
+        more than `LOOP_MAX` links; all of them below): the roots on joints of more than one
+        speed, such as a floating base, so that the links in the scan carry the width of their
+        own joints (one speed each in most robots), not the base's six."""
+        n = len(self.links)
+        if n <= LOOP_MAX:
+            return n
+        head = 0
+        while head < n and self.parents[head] < 0 and self.links[head].joint.nv > 1:
+            head += 1
+        return head
+
     def forward(self, step, root, per_link):
         """The parent-to-child recursion: state_i = step(state of parent(i), per_link[i]), with
         `root` the world's state; returns the stacked states of the links."""
-        parents = self.parents
-        n = len(parents)
-        if n <= LOOP_MAX:
-            states = []
-            for i, parent in enumerate(parents):
-                previous = root if parent < 0 else states[parent]
-                states.append(step(previous, jax.tree_util.tree_map(lambda x: x[i], per_link)))
-            return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+        parents, tree_map = self.parents, jax.tree_util.tree_map
+        n, head = len(parents), self.scan_head()
+        states = []
+        for i in range(head):
+            states.append(step(root if parents[i] < 0 else states[parents[i]],
+                               tree_map(lambda x: x[i], per_link)))
+        if head == n:
+            return tree_map(lambda *xs: jnp.stack(xs), *states)
+        rest = tree_map(lambda x: x[head:], per_link)
         if self._is_chain():  # the carry is the parent's state: no buffer to index
             def chain_body(previous, data):
                 state = step(previous, data)
                 return state, state
 
-            return jax.lax.scan(chain_body, root, per_link)[1]
-        buffer, parent_index = _buffer(root, parents)  # the world in the last slot
+            scanned = jax.lax.scan(chain_body, states[-1] if states else root, rest)[1]
+        else:
+            buffer, parent_index = _buffer(root, parents)  # the world in the last slot
+            for i, state in enumerate(states):
+                buffer = tree_map(lambda b, x: _set(b, i, x), buffer, state)
 
-        def body(buffer, xs):
-            i, parent, data = xs
-            state = step(jax.tree_util.tree_map(lambda b: _get(b, parent), buffer), data)
-            return jax.tree_util.tree_map(lambda b, s: _set(b, i, s), buffer, state), None
+            def body(buffer, xs):
+                i, parent, data = xs
+                state = step(tree_map(lambda b: _get(b, parent), buffer), data)
+                return tree_map(lambda b, x: _set(b, i, x), buffer, state), None
 
-        buffer, _ = jax.lax.scan(body, buffer, (np.arange(n), parent_index, per_link))
-        return jax.tree_util.tree_map(lambda b: b[:n], buffer)
+            buffer, _ = jax.lax.scan(body, buffer, (np.arange(head, n), parent_index[head:],
+                                                    rest))
+            scanned = tree_map(lambda b: b[head:n], buffer)
+        if not states:
+            return scanned
+        return tree_map(lambda x, *xs: jnp.concatenate([jnp.stack(xs).astype(x.dtype), x]),
+                        scanned, *states)
 
     def backward(self, step, zero, per_link):
         """The child-to-parent recursion, links in reverse order: (out_i, to_parent_i) =
         step(acc_i, per_link[i]), where acc_i is `zero` plus what the children of i passed up.
         Returns the stacked outputs and what the roots passed to the world."""
-        parents = self.parents
-        n = len(parents)
-        if n <= LOOP_MAX:
-            accumulated = [zero] * (n + 1)  # the last for the world
-            outputs = [None] * n
-            for i in reversed(range(n)):
-                out, up = step(accumulated[i], jax.tree_util.tree_map(lambda x: x[i], per_link))
-                outputs[i] = out
-                target = n if parents[i] < 0 else parents[i]
-                accumulated[target] = jax.tree_util.tree_map(jnp.add, accumulated[target], up)
-            stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *outputs)
-            return stacked, accumulated[n]
-        if self._is_chain():  # the carry is what the child passes up
-            def chain_body(accumulated, data):
-                out, up = step(accumulated, data)
-                return jax.tree_util.tree_map(jnp.add, zero, up), out
+        parents, tree_map = self.parents, jax.tree_util.tree_map
+        n, head = len(parents), self.scan_head()
+        accumulated = [zero] * (n + 1)  # the last for the world
+        scanned = None
+        if head < n:
+            rest = tree_map(lambda x: x[head:], per_link)
+            if self._is_chain():  # the carry is what the child passes up
+                def chain_body(carry, data):
+                    out, up = step(carry, data)
+                    return tree_map(jnp.add, zero, up), out
 
-            up, outputs = jax.lax.scan(chain_body, zero, per_link, reverse=True)
-            return outputs, up
-        buffer, parent_index = _buffer(zero, parents)  # the world in the last slot
+                up, scanned = jax.lax.scan(chain_body, zero, rest, reverse=True)
+                accumulated[head - 1 if head else n] = up
+            else:
+                buffer, parent_index = _buffer(zero, parents)  # the world in the last slot
 
-        def body(buffer, xs):
-            i, parent, data = xs
-            out, up = step(jax.tree_util.tree_map(lambda b: _get(b, i), buffer), data)
-            buffer = jax.tree_util.tree_map(lambda b, x: _set(b, parent, _get(b, parent) + x),
-                                            buffer, up)
-            return buffer, out
+                def body(buffer, xs):
+                    i, parent, data = xs
+                    out, up = step(tree_map(lambda b: _get(b, i), buffer), data)
+                    buffer = tree_map(lambda b, x: _set(b, parent, _get(b, parent) + x),
+                                      buffer, up)
+                    return buffer, out
 
-        buffer, outputs = jax.lax.scan(
-            body, buffer, (np.arange(n), parent_index, per_link), reverse=True)
-        return outputs, jax.tree_util.tree_map(lambda b: b[n], buffer)
+                buffer, scanned = jax.lax.scan(
+                    body, buffer, (np.arange(head, n), parent_index[head:], rest), reverse=True)
+                for i in [*range(head), n]:
+                    accumulated[i] = tree_map(lambda b: b[i], buffer)
+        outputs = [None] * head
+        for i in reversed(range(head)):
+            outputs[i], up = step(accumulated[i], tree_map(lambda x: x[i], per_link))
+            target = n if parents[i] < 0 else parents[i]
+            accumulated[target] = tree_map(jnp.add, accumulated[target], up)
+        if not outputs:
+            return scanned, accumulated[n]
+        stacked = tree_map(lambda *xs: jnp.stack(xs), *outputs)
+        if scanned is not None:
+            stacked = tree_map(lambda x, y: jnp.concatenate([x, y.astype(x.dtype)]), stacked,
+                               scanned)
+        return stacked, accumulated[n]
 
     def link_states(self, t, q, u, p):
         """World poses and velocities of the links: (R_WC (N, 3, 3), r_WC (N, 3), ω (N, 3),
