@@ -4,8 +4,8 @@
 2. Identification of the arm's inertial parameters from noisy joint torques through the
    regressor: M u̇ + c − g = Y(q, u, u̇) π is linear in π (ten parameters per link), so the
    identifiable combinations follow from linear least squares; physically consistent
-   parameters (positive masses, inertias of rigid bodies) from a Levenberg–Marquardt fit of
-   the same residuals in a parametrisation that cannot leave that set.
+   parameters (each link a rigid body: pseudo-inertia positive definite) from the convex fit
+   of `jaxdyn.fit_inertial_parameters`.
 3. Computed-torque control of the gripper's tool point along a circle: the task-space
    acceleration from frame Jacobians (ẍ = J u̇ + J̇ u), the joint torques from inverse
    dynamics.
@@ -18,7 +18,6 @@ import pathlib
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 import jaxdyn
 
@@ -66,60 +65,28 @@ print(f"1. inverse dynamics along the planned motion: peak joint torques "
 # -- 2. Identification from noisy torques --------------------------------------------------------
 sigma = 0.05 * np.std(np.asarray(tau), axis=0)  # torque-sensor noise, 5 % of each joint's spread
 measured = tau + sigma * rng.normal(size=tau.shape)
-A = np.asarray(Y / sigma[None, :, None]).reshape(-1, 10 * len(links))  # weighted by 1/σ
-b = np.asarray(measured / sigma).ravel()
-singular = np.linalg.svd(A, compute_uv=False)
-rank = int(np.sum(singular > 1e-9 * singular[0]))
-pi_ls, *_ = np.linalg.lstsq(A, b, rcond=1e-9)
-print(f"2. regressor: {A.shape[1]} inertial parameters, {rank} identifiable combinations "
-      f"(the base, fixed to the world, and what the joint axes cannot see are not); condition "
-      f"number of the identifiable part {singular[0] / singular[rank - 1]:.1e}")
+prior = jax.tree_util.tree_map(lambda x: 1.3 * x, p_true)  # CAD values 30 % off
+result = jaxdyn.fit_inertial_parameters(robot, q, u, ud, measured, prior, weights=sigma**-2)
+singular = result.singular_values
+print(f"2. regressor: {10 * len(result.links)} inertial parameters of {len(result.links)} moving "
+      f"links, {result.rank} identifiable combinations (what the joint axes cannot see is not); "
+      f"condition number of the identifiable part {singular[0] / singular[result.rank - 1]:.1e}")
 
 # A validation motion not used in the fit: torques predicted from each estimate.
 ts_check = jnp.linspace(0.0, 10.0, 201) + 0.37
 q_c, u_c, ud_c, tau_c, Y_c = torques_and_regressor(ts_check * 0.8)
-predicted_ls = np.asarray(Y_c) @ pi_ls
-print(f"   validation torques from least squares: RMS error "
-      f"{np.sqrt(np.mean((predicted_ls - np.asarray(tau_c)) ** 2)):.3f} N·m "
-      f"(noise RMS {np.sqrt(np.mean(sigma ** 2)):.3f})")
-
-
-# Physically consistent: each moving link's mass positive, its inertia about the centre of mass
-# a rigid body's (Cholesky factor of its second moment), fitted from a prior 30 % off, with a
-# weak pull towards the prior along what the data cannot see.
-inertia = jaxdyn.InertiaTensor()
-moving = links[1:]
-
-
-def to_latent(p):
-    return {k: (jnp.log(p[k]["mass"]), p[k]["com"], inertia.to_latent(np.asarray(p[k]["inertia"]), k))
-            for k in moving}
-
-
-def to_params(z):
-    return {**p_true, **{k: {"mass": jnp.exp(z[k][0]), "com": z[k][1],
-                             "inertia": inertia.to_physical(z[k][2])} for k in moving}}
-
-
-prior = jax.tree_util.tree_map(lambda x: 1.3 * x, p_true)
-z_prior = to_latent(prior)
-
-
-def residuals(z, args):
-    pi = jaxdyn.inertial_parameters(robot, to_params(z)).ravel()
-    return (A @ pi - b, jax.tree_util.tree_map(lambda a, b: 1e-2 * (a - b), z, z_prior))
-
-
-solution = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-4, atol=1e-4),
-                              z_prior, max_steps=400, throw=False)
-p_fit = to_params(solution.value)
-predicted_fit = np.asarray(Y_c) @ np.asarray(jaxdyn.inertial_parameters(robot, p_fit)).ravel()
-masses = {k: float(p_fit[k]["mass"]) for k in moving}
-print(f"   physically consistent fit: {int(solution.stats['num_steps'])} steps "
-      f"({'converged' if solution.result == optx.RESULTS.successful else 'NOT converged'}), "
-      f"validation RMS "
-      f"{np.sqrt(np.mean((predicted_fit - np.asarray(tau_c)) ** 2)):.3f} N·m; all masses "
-      f"positive ({min(masses.values()):.3f} kg the least), every inertia a rigid body's")
+for label, pi in (("least squares", result.least_squares),
+                  ("physically consistent", result.inertial_parameters)):
+    predicted = np.asarray(Y_c) @ np.asarray(pi).ravel()
+    print(f"   {label:21s}: validation RMS error "
+          f"{np.sqrt(np.mean((predicted - np.asarray(tau_c)) ** 2)):.3f} N·m "
+          f"(noise RMS {np.sqrt(np.mean(sigma ** 2)):.3f}), weighted residual RMS "
+          f"{result.least_squares_rms if label == 'least squares' else result.residual_rms:.3f}")
+print(f"   consistent fit: {result.num_steps} Newton steps "
+      f"({'converged' if result.converged else 'NOT converged'}), every link a rigid body")
+for k in result.links:
+    print(f"   {k:10s} mass {float(result.params[k]['mass']):6.3f} kg "
+          f"(true {float(p_true[k]['mass']):6.3f}, prior {float(prior[k]['mass']):6.3f})")
 
 # -- 3. Computed-torque control of the tool point along a circle ---------------------------------
 tool = (0.0, 0.1, 0.0)  # in the gripper's axes
@@ -175,8 +142,10 @@ try:
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     axes[0].plot(np.asarray(tau_c)[:, 1], label="true")
-    axes[0].plot(predicted_ls[:, 1], "--", label="least squares")
-    axes[0].plot(predicted_fit[:, 1], ":", label="physically consistent")
+    for (label, pi), style in zip((("least squares", result.least_squares),
+                                   ("physically consistent", result.inertial_parameters)),
+                                  ("--", ":")):
+        axes[0].plot((np.asarray(Y_c) @ np.asarray(pi).ravel())[:, 1], style, label=label)
     axes[0].set(title="shoulder-lift torque, validation motion", xlabel="sample", ylabel="N·m")
     axes[0].legend()
     axes[1].plot(*np.asarray(goal)[:, :2].T, "k", label="target")

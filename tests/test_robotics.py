@@ -388,3 +388,77 @@ def test_errors_name_the_problem(panda):
         jaxdyn.inverse_dynamics_regressor(tree, q, u, u[:-1])
     with pytest.raises(ValueError, match="RigidBodyTree"):
         jaxdyn.centre_of_mass(jaxdyn.ArticulatedBody(tree), q)
+
+
+def _planar_arm_urdf(path, scale_inertia=1.0, com_shift=1.0):
+    """The planar arm of `_planar_arm` as a URDF (its rods given a small x moment, so that
+    each is a rigid body strictly inside the consistent set), with a massless tip frame."""
+    links, joints = [], []
+    for i, (m, l) in enumerate(((ARM["m1"], ARM["l1"]), (ARM["m2"], ARM["l2"]))):
+        izz = scale_inertia * m * l**2 / 12
+        links.append(
+            f'<link name="rod{i}"><inertial><origin xyz="{com_shift * l / 2} 0 0"/>'
+            f'<mass value="{scale_inertia * m}"/><inertia ixx="{scale_inertia * 1e-3}" ixy="0" '
+            f'ixz="0" iyy="{izz}" iyz="0" izz="{izz}"/></inertial></link>')
+        joints.append(
+            f'<joint name="j{i}" type="continuous"><parent link="{"base" if i == 0 else "rod0"}"/>'
+            f'<child link="rod{i}"/><origin xyz="{0.0 if i == 0 else ARM["l1"]} 0 0"/>'
+            '<axis xyz="0 0 1"/></joint>')
+    text = ('<robot name="arm"><link name="base"/>' + "".join(links) + '<link name="tip"/>'
+            + "".join(joints) + f'<joint name="tool" type="fixed"><parent link="rod1"/>'
+            f'<child link="tip"/><origin xyz="{ARM["l2"]} 0 0"/></joint></robot>')
+    path.write_text(text)
+    return jaxdyn.from_urdf(str(path), gravity=(0.0, -ARM["g"], 0.0), damping=False)
+
+
+def test_inertial_parameters_from_torques(tmp_path):
+    """Torques of the textbook two-link arm (Spong et al.), the prior 30 % off: the planar arm
+    has six identifiable combinations (Khalil and Dombre: ZZ₁ + m₂l₁², MX₁ + m₂l₁, MY₁, ZZ₂,
+    MX₂, MY₂); the consistent estimate is a rigid body for every link and predicts torques at
+    new states as the textbook does; with noise, its weighted residual is the noise's (χ²)."""
+    tree, p_true = _planar_arm_urdf(tmp_path / "arm.urdf")
+    _, prior = _planar_arm_urdf(tmp_path / "prior.urdf", scale_inertia=1.3, com_shift=0.8)
+    rng = np.random.default_rng(3)
+    states = rng.normal(size=(2, 3, 60, 2))
+    (q, u, ud), (q_new, u_new, ud_new) = states
+    tau = np.stack([_planar_arm_by_hand(*x)[0] for x in zip(q, u, ud)])
+    tau_new = np.stack([_planar_arm_by_hand(*x)[0] for x in zip(q_new, u_new, ud_new)])
+
+    result = jaxdyn.fit_inertial_parameters(tree, q, u, ud, tau, prior)
+    assert result.links == ("rod0", "rod1", "tip")  # the fixed base is invisible to torques
+    assert result.rank == 6
+    assert result.converged
+    predicted = jax.vmap(jaxdyn.ArticulatedBody(tree).residual, (None, 0, 0, 0, None))(
+        0.0, q_new, u_new, ud_new, result.params)
+    assert_close(predicted, tau_new, rtol=0, atol=1e-7 * np.max(np.abs(tau_new)))
+    for name in result.links:
+        mass, inertia = result.params[name]["mass"], np.asarray(result.params[name]["inertia"])
+        moments = np.linalg.eigvalsh(inertia)
+        assert mass > 0 and moments[0] > 0 and moments[2] <= moments[0] + moments[1], name
+    # The six combinations themselves, the tip (at x = l₂ on rod1) lumped into the second link.
+    (_, *_), rod0, rod1, tip = np.asarray(result.inertial_parameters)
+    m2 = rod1[0] + tip[0]
+    l1, l2 = ARM["l1"], ARM["l2"]
+    identified = [rod0[9] + m2 * l1**2, rod0[1] + m2 * l1, rod0[2],
+                  rod1[9] + tip[9] + 2 * l2 * tip[1] + tip[0] * l2**2,
+                  rod1[1] + tip[1] + tip[0] * l2, rod1[2] + tip[2]]
+    textbook = [ARM["m1"] * l1**2 / 3 + ARM["m2"] * l1**2, ARM["m1"] * l1 / 2 + ARM["m2"] * l1,
+                0.0, ARM["m2"] * l2**2 / 3, ARM["m2"] * l2 / 2, 0.0]
+    assert_close(identified, textbook, rtol=1e-6, atol=1e-7)  # the prior's pull: ~1e-7
+
+    sigma = 0.01 * np.std(tau, axis=0)
+    noisy = tau + sigma * rng.normal(size=tau.shape)
+    result = jaxdyn.fit_inertial_parameters(tree, q, u, ud, noisy, prior, weights=sigma**-2,
+                                            links=["rod0", "rod1"])
+    assert 0.7 < result.least_squares_rms < 1.1  # χ² per degree of freedom ≈ 1 (120 − 6 dof)
+    assert result.residual_rms < 1.1 * result.least_squares_rms + 0.05
+    predicted = jax.vmap(jaxdyn.ArticulatedBody(tree).residual, (None, 0, 0, 0, None))(
+        0.0, q_new, u_new, ud_new, result.params)
+    assert np.sqrt(np.mean((np.asarray(predicted) - tau_new) ** 2 / sigma**2)) < 1.0
+
+    with pytest.raises(ValueError, match=r"tau must have shape \(k, 2\)"):
+        jaxdyn.fit_inertial_parameters(tree, q, u, ud, tau[:, :1], prior)
+    with pytest.raises(ValueError, match="ud holds NaN"):
+        jaxdyn.fit_inertial_parameters(tree, q, u, np.full_like(ud, np.nan), tau, prior)
+    with pytest.raises(ValueError, match=r"links \['elbow'\] are not in the tree"):
+        jaxdyn.fit_inertial_parameters(tree, q, u, ud, tau, prior, links=["elbow"])
