@@ -11,9 +11,12 @@ incompatible mujoco otherwise); without MuJoCo those columns are left out.
   angles) against the chain's closed-form equations written by hand in jax.numpy (absolute
   angles θ = cumsum(q), M_ij = a_ij cos(θ_i − θ_j) + δ_ij m l²/12, Cholesky solve, q̈ =
   first differences of θ̈), and against MuJoCo's MJX on the same chain (an MJCF of hinges);
-- robots: the Panda arm (fixed base, 9 joints), the Solo-12 quadruped and the Talos humanoid
-  (44 joints), both on a free-floating base, from the URDFs of example-robot-data, against
-  Pinocchio's `aba` called from Python, and MJX (the same URDF without meshes);
+- robots: the Panda and UR5 arms (fixed base), the ANYmal-C quadruped, the Unitree G1 and the
+  Talos humanoid (floating base), from the URDFs of example-robot-data: forward dynamics
+  (unchecked and the default checked call), mass matrix, inverse dynamics, a frame Jacobian
+  and the torque regressor, each per state in a jitted vmap over 1024 states, against
+  Pinocchio's aba, crba, rnea, computeFrameJacobian and computeJointTorqueRegressor called
+  from Python, and MJX's forward dynamics (the same URDF without meshes) where installed;
 - per formulation: `ArticulatedBody` (the default for trees), and Kane, Gibbs–Appell and
   Lagrange for chains up to N = 20 (their cost grows faster; compile and in-loop only).
 
@@ -100,7 +103,7 @@ def chain_mjcf(n):
 
 def robot_file(name):
     for f in importlib.metadata.files("example-robot-data"):
-        if str(f).endswith("/" + name):
+        if str(f).endswith("robots/" + name):
             return str(f.locate())
     raise FileNotFoundError(name)
 
@@ -256,11 +259,29 @@ def chains(sizes, formulation_sizes):
                       f"|Δq̈| = {error:.1e}", flush=True)
 
 
+ROBOTS = [("panda_description/urdf/panda.urdf", False, "panda_hand"),
+          ("ur_description/urdf/ur5_robot.urdf", False, "tool0"),
+          ("anymal_c_simple_description/urdf/anymal.urdf", True, "LF_FOOT"),
+          ("g1_description/urdf/g1_29dof_rev_1_0.urdf", True, "left_rubber_hand"),
+          ("talos_data/robots/talos_full_v2.urdf", True, "gripper_left_base_link")]
+
+
+def pinocchio_per_call(fn, states, repeats=20):
+    """Seconds per call of a Pinocchio function called from Python over the given states."""
+    start = time.perf_counter()
+    for _ in range(repeats):
+        for state in states:
+            fn(*state)
+    return (time.perf_counter() - start) / (repeats * len(states))
+
+
 def robots(names):
+    """Per algorithm and robot: jaxdyn per state in a jitted vmap over 1024 states (and its
+    compile time) against Pinocchio per call from Python (64 random states)."""
     import pinocchio as pin
 
-    print("\n-- robot models: µs per evaluation; Pinocchio's aba called from Python --")
-    for name, floating in names:
+    print("\n-- robot models: per state in a vmap of 1024 (compile) against Pinocchio per call --")
+    for name, floating, frame in names:
         path = robot_file(name)
         tree, p = jaxdyn.from_urdf(path, floating=floating, parameters=False,
                                    damping=False)  # none in Pinocchio's or MJX's model
@@ -269,18 +290,54 @@ def robots(names):
                  else pin.buildModelFromUrdf(path))
         data = model.createData()
         # the same model: the mass matrices' eigenvalues at the neutral configuration agree
-        q_pin = pin.neutral(model)
-        m_pin = pin.crba(model, data, q_pin)
+        m_pin = pin.crba(model, data, pin.neutral(model))
         m_pin = np.triu(m_pin) + np.triu(m_pin, 1).T
         neutral = jnp.asarray(tree.neutral_configuration())
         m_ours = aba.mass_matrix(0.0, neutral, jnp.zeros(tree.num_speeds), None)
         assert np.allclose(np.linalg.eigvalsh(m_ours), np.linalg.eigvalsh(m_pin),
                            rtol=1e-10, atol=1e-12), name
         qs, us = batch_of_states(tree.num_coordinates, tree.num_speeds, neutral, 0)
-        candidates = {"ABA": (unchecked(aba), None)}
+        uds = us[::-1]
+        t = jnp.asarray(0.0)
+        frame_id = model.getFrameId(frame)
+        world = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        rng = np.random.default_rng(1)
+        states = [(pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq)),
+                   rng.uniform(-1, 1, model.nv), rng.uniform(-1, 1, model.nv))
+                  for _ in range(64)]
+        algorithms = {  # name: (jaxdyn per state (q, u, u̇), Pinocchio (q, v, a))
+            "forward dynamics, throw=False": (
+                lambda q, u, ud: aba.accelerations(t, q, u, None, throw=False),
+                lambda q, v, a: pin.aba(model, data, q, v, a)),
+            "forward dynamics, default (checked)": (
+                lambda q, u, ud: aba.accelerations(t, q, u, None),
+                lambda q, v, a: pin.aba(model, data, q, v, a)),
+            "mass matrix (CRBA)": (
+                lambda q, u, ud: aba.mass_matrix(t, q, u, None),
+                lambda q, v, a: pin.crba(model, data, q)),
+            "inverse dynamics (RNEA)": (
+                lambda q, u, ud: aba.residual(t, q, u, ud, None),
+                lambda q, v, a: pin.rnea(model, data, q, v, a)),
+            f"Jacobian of {frame}": (
+                lambda q, u, ud: jaxdyn.frame_jacobian(tree, frame, q),
+                lambda q, v, a: pin.computeFrameJacobian(model, data, q, frame_id, world)),
+            "torque regressor": (
+                lambda q, u, ud: jaxdyn.inverse_dynamics_regressor(tree, q, u, ud),
+                lambda q, v, a: pin.computeJointTorqueRegressor(model, data, q, v, a)),
+        }
+        print(f"{name.split('/')[-1]} (nq {tree.num_coordinates}, nv {tree.num_speeds}, "
+              f"{len(tree.links)} links, {len(tree.merge_fixed().links)} after merging fixed "
+              "joints)", flush=True)
+        for label, (ours, theirs) in algorithms.items():
+            batched = jax.vmap(ours)
+            compile_time = compile_seconds(batched, qs, us, uds)
+            vmapped = interleaved({label: (jax.jit(batched), (qs, us, uds))},
+                                  number=3)[label] / BATCH
+            pinocchio = pinocchio_per_call(theirs, states)
+            print(f"  {label:36s} {fmt(vmapped)} per state (compile {compile_time:4.1f} s); "
+                  f"Pinocchio {fmt(pinocchio)}; ratio {vmapped / pinocchio:5.2f}×", flush=True)
         if mjx:
             mj = robot_mjcf(path, floating)
-            candidates["MJX"] = (mjx_accelerations(mj), None)
             m_mj = np.zeros((mj.nv, mj.nv))
             mj_data = mujoco.MjData(mj)
             mujoco.mj_forward(mj, mj_data)
@@ -292,42 +349,13 @@ def robots(names):
             mj_q = np.tile(mj.qpos0, (BATCH, 1))
             mj_q[:, -(mj.nq - (7 if floating else 0)):] += np.random.default_rng(0).uniform(
                 -0.5, 0.5, (BATCH, mj.nq - (7 if floating else 0)))
-        t = jnp.asarray(0.0)
-        compile_ours = compile_seconds(unchecked(aba), t, qs[0], us[0], None)
-        single = interleaved({"ABA": (jax.jit(unchecked(aba)), (t, qs[0], us[0], None))},
-                             number=200)["ABA"]
-        vmapped = interleaved({"ABA": (jax.jit(jax.vmap(unchecked(aba), (None, 0, 0, None))),
-                                       (t, qs, us, None))}, number=3)["ABA"] / BATCH
-        loop = None
-        if not floating:
-            loop = interleaved({"ABA": (in_loop(unchecked(aba), LOOP),
-                                        (t, qs[0], us[0], None))}, number=1, rounds=5)["ABA"]
-            loop /= LOOP
-        q_np = [pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
-                for _ in range(64)]
-        v_np = [np.random.default_rng(i).uniform(-1, 1, model.nv) for i in range(64)]
-        tau = np.zeros(model.nv)
-        start = time.perf_counter()
-        for _ in range(20):
-            for q, v in zip(q_np, v_np):
-                pin.aba(model, data, q, v, tau)
-        pinocchio = (time.perf_counter() - start) / (20 * 64)
-        row = (f"{name:>20s} nq={tree.num_coordinates:3d} nv={tree.num_speeds:3d} "
-               f"bodies={len(tree.links):3d}: compile {compile_ours:5.2f} s, one call "
-               f"{fmt(single)}, in loop {fmt(loop) if loop else '        —'}, per state in vmap "
-               f"{fmt(vmapped)}; Pinocchio {fmt(pinocchio)} (vmap/Pinocchio "
-               f"{vmapped / pinocchio:.2f}×)")
-        if mjx:
             fn = mjx_accelerations(mj)
-            mj_qs, mj_us = jnp.asarray(mj_q), us
-            mjx_compile = compile_seconds(fn, t, mj_qs[0], mj_us[0], None)
-            mjx_single = interleaved({"MJX": (jax.jit(fn), (t, mj_qs[0], mj_us[0], None))},
-                                     number=100)["MJX"]
+            mj_qs = jnp.asarray(mj_q)
+            mjx_compile = compile_seconds(fn, t, mj_qs[0], us[0], None)
             mjx_vmapped = interleaved({"MJX": (jax.jit(jax.vmap(fn, (None, 0, 0, None))),
-                                               (t, mj_qs, mj_us, None))}, number=3)["MJX"] / BATCH
-            row += (f"; MJX compile {mjx_compile:5.2f} s, one call {fmt(mjx_single)}, per state "
-                    f"in vmap {fmt(mjx_vmapped)} (ABA/MJX {vmapped / mjx_vmapped:.2f}×)")
-        print(row, flush=True)
+                                               (t, mj_qs, us, None))}, number=3)["MJX"] / BATCH
+            print(f"  {'MJX forward dynamics':36s} {fmt(mjx_vmapped)} per state (compile "
+                  f"{mjx_compile:4.1f} s)", flush=True)
 
 
 def main():
@@ -336,8 +364,7 @@ def main():
           + (f", mujoco {mujoco.__version__}" if mujoco else ", MJX not installed"))
     sizes = (2, 5, 10, 20) if quick else (2, 5, 10, 20, 50, 100)
     chains(sizes, formulation_sizes=(5, 20) if quick else (5, 10, 20))
-    robots([("panda.urdf", False)] if quick else
-           [("panda.urdf", False), ("solo12.urdf", True), ("talos_full_v2.urdf", True)])
+    robots(ROBOTS[:1] if quick else ROBOTS)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,31 @@
 """jaxdyn: differentiable analytical dynamics on JAX."""
 
 import importlib.metadata
+import os as _os
+
+# XLA's CPU fusion emitters compile the straight-line scalar programs of small systems
+# (`jaxdyn._unroll`) into code that runs 50–2500× slower than XLA's elemental emitters on the
+# same program: a UR5 arm's forward dynamics costs 1 ms per state in a vmapped batch (and in
+# a batch of simulations) with them, 0.4 µs without; a single jitted call 302 µs against 4 µs
+# (benchmarks/README.md, "The straight-line program and XLA's CPU emitters"). The switch is
+# read when JAX first starts its CPU backend, so it is set here, before jaxdyn creates any
+# array, unless the user chose a value of their own.
+if "xla_cpu_use_fusion_emitters" not in _os.environ.get("XLA_FLAGS", ""):
+    _os.environ["XLA_FLAGS"] = (_os.environ.get("XLA_FLAGS", "")
+                                + " --xla_cpu_use_fusion_emitters=false").strip()
+    import jax._src.xla_bridge as _xla_bridge
+
+    if _xla_bridge.backends_are_initialized() and _xla_bridge.default_backend() == "cpu":
+        import warnings as _warnings
+
+        _warnings.warn(
+            "JAX started its backends before jaxdyn was imported, so jaxdyn could not turn "
+            "off XLA's CPU fusion emitters, which run the straight-line programs of small "
+            "systems up to thousands of times slower on the CPU (a vmapped batch above all). "
+            "Import jaxdyn before the first JAX computation, or start Python with "
+            "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false.", stacklevel=2)
+    del _xla_bridge
+del _os
 
 from . import rotations as rotations
 from ._system.base import AbstractMultibody as AbstractMultibody

@@ -455,3 +455,31 @@ def PENDULUM_BY_SCIPY(ts):
         lambda t, y: [y[1], -g / length * np.sin(y[0])], (0.0, end), [Q0[0], U0[0]],
         method="DOP853", rtol=1e-12, atol=1e-12, dense_output=True)
     return solution.sol(ts)[0]
+
+
+def test_import_chooses_xla_cpu_emitters_or_says_it_could_not():
+    """`import jaxdyn` turns XLA's CPU fusion emitters off (on the straight-line programs of
+    small systems they generate code up to thousands of times slower), keeps a user's own
+    choice, and warns, naming the switch, when JAX started before jaxdyn was imported."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    scripts = {
+        "first": ("import os, jaxdyn, jax.numpy as jnp; jnp.ones(1); "
+                  "print(os.environ['XLA_FLAGS'])", {}),
+        "chosen": ("import os, jaxdyn; print(os.environ['XLA_FLAGS'])",
+                   {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}),
+        "late": ("import jax.numpy as jnp; jnp.ones(1); import jaxdyn", {}),
+    }
+    running = {name: subprocess.Popen([sys.executable, "-W", "error", "-c", code],
+                                      env={**env, **extra}, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True)
+               for name, (code, extra) in scripts.items()}
+    done = {name: (process.wait(), *process.communicate()) for name, process in running.items()}
+    assert done["first"][0] == 0, done["first"][2]
+    assert done["first"][1].strip() == "--xla_cpu_use_fusion_emitters=false"
+    assert done["chosen"][1].strip() == "--xla_cpu_use_fusion_emitters=true"
+    assert done["late"][0] != 0
+    assert "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false" in done["late"][2]
