@@ -6,10 +6,12 @@ computations: the newer fusion emitters (XLA's default) and the elemental emitte
 programs the fusion emitters produce code many times slower, so `import jaxdyn` selects the
 elemental ones (`--xla_cpu_use_fusion_emitters=false`) unless XLA_FLAGS already names the
 switch. This script measures both, each in a fresh process (the switch is read when JAX
-starts its backend): forward dynamics of the UR5 arm (6 joints, articulated-body algorithm,
-unrolled) and of the double pendulum (Lagrange's equations), as one jitted call, inside a
-compiled loop, and per state in a jitted vmap over 1024 states; and the compile time of
-that vmap.
+starts its backend): forward dynamics of the UR5 arm (6 joints) and a chain of 6 rods
+(articulated-body algorithm, unrolled) and of the double pendulum (Lagrange's equations), as
+one jitted call, inside a compiled loop, and per state in a jitted vmap over 1024 states; and
+the compile time of that vmap. A batch of double-pendulum simulations, the case the elemental
+emitters make slower, is measured by `bench_default_paths.py --only batches` under
+XLA_FLAGS=--xla_cpu_use_fusion_emitters=true and =false.
 
 Run: python benchmarks/bench_emitters.py        (about 1 minute)
 """
@@ -27,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 import jaxdyn
 from _systems import DOUBLE_PENDULUM_PARAMS, as_arrays, double_pendulum_T, double_pendulum_V
 from _timing import in_loop, interleaved
-from bench_trees import batch_of_states, robot_file
+from bench_trees import batch_of_states, chain_tree, robot_file
 
 def cases():
     tree, _ = jaxdyn.from_urdf(robot_file("ur_description/urdf/ur5_robot.urdf"),
@@ -35,6 +37,9 @@ def cases():
     ur5 = jaxdyn.ArticulatedBody(tree)
     qs, us = batch_of_states(6, 6, jnp.asarray(tree.neutral_configuration()), 0)
     yield "UR5, articulated body", ur5, qs, us, None
+    rng = np.random.default_rng(0)
+    yield ("chain of 6 rods, articulated body", jaxdyn.ArticulatedBody(chain_tree(6)),
+           jnp.asarray(rng.normal(size=(1024, 6))), jnp.asarray(rng.normal(size=(1024, 6))), None)
     pendulum = jaxdyn.Lagrangian(double_pendulum_T, double_pendulum_V)
     yield ("double pendulum, Lagrange", pendulum, qs[:, :2], us[:, :2],
            as_arrays(DOUBLE_PENDULUM_PARAMS))

@@ -135,16 +135,56 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
 
     **Arguments:** the tree, coordinates q (n,), speeds u (m,), accelerations u̇ (m,), and p
     (only gravity may depend on it). Formed as the Jacobian of the recursive Newton–Euler
-    forces in π (exact: they are linear). `jax.vmap` it over states.
+    forces in π (exact: they are linear), in reverse mode: m passes back through the
+    recursion rather than 10 N forward. `jax.vmap` it over states.
     """
     q, u, ud = _checked(tree, q, u, ud)
-    n = len(tree.links)
+    bodies = tree.merge_fixed()  # the links welded by fixed joints: one body each
+    n = len(bodies.links)
     t = jnp.zeros((), q.dtype)
 
     def forces(parameters):
-        return newton_euler(tree, t, q, u, ud, p, parameters.reshape(n, 10), loads=False)
+        return newton_euler(bodies, t, q, u, ud, p, parameters.reshape(n, 10), loads=False)
 
-    return jax.jacfwd(forces)(jnp.zeros(10 * n, q.dtype))
+    regressor = jax.jacrev(forces)(jnp.zeros(10 * n, q.dtype)).reshape(-1, n, 10)
+    if bodies is tree:
+        return regressor.reshape(-1, 10 * n)
+    # A welded link's π enters its body's π linearly (`_transport`): Y_k = Y_body(k) T_k.
+    body_index, transport = _welding(tree, bodies)
+    columns = jnp.einsum("mkj,kje->mke", regressor[:, body_index],
+                         jnp.asarray(transport, q.dtype))
+    return columns.reshape(-1, 10 * len(tree.links))
+
+
+def _transport(parameters, rotation, translation):
+    """π of a link seen from a body it is welded to, placed at (R, r) in the body's axes:
+    m, R h + m r, and about the body's origin I = R I_O Rᵀ + m (|r|² 1 − r rᵀ) + 2 (r·R h) 1
+    − r (R h)ᵀ − (R h) rᵀ (the parallel-axis theorem with the first moment). Linear in π."""
+    mass, first_moment = parameters[0], rotation @ parameters[1:4]
+    inertia = (rotation @ parameters[_SYMMETRIC] @ rotation.T
+               + mass * (translation @ translation * np.eye(3) - np.outer(translation,
+                                                                          translation))
+               + 2 * (translation @ first_moment) * np.eye(3)
+               - np.outer(translation, first_moment) - np.outer(first_moment, translation))
+    return np.concatenate([[mass], first_moment + mass * translation,
+                           inertia[[0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]])
+
+
+def _welding(tree, bodies):
+    """For each link of `tree`, the index of its body in `bodies` (`merge_fixed`) and the
+    10 × 10 matrix T_k with π_body = Σ_k T_k π_k (zero for links fixed to the world)."""
+    names = [link.name for link in bodies.links]
+    placements = tree.welded_bodies()
+    body_index = np.zeros(len(tree.links), dtype=int)
+    transport = np.zeros((len(tree.links), 10, 10))
+    for k, link in enumerate(tree.links):
+        body, rotation, translation = placements[link.name]
+        if body is None:
+            continue
+        body_index[k] = names.index(body)
+        transport[k] = np.stack([_transport(unit, rotation, translation)
+                                 for unit in np.eye(10)], axis=1)
+    return body_index, transport
 
 
 @public_function()

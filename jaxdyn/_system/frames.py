@@ -42,6 +42,22 @@ def _index(tree, frame):
     raise ValueError(f"A frame is a link's name (or index), got {frame!r}.")
 
 
+def _ancestors(tree, i):
+    """The links from the root to link i, as a tree of its own (a chain), and the indices of
+    its coordinates and speeds in the whole tree's q and u: a frame's pose and motion depend on
+    nothing else, so a foot of a 78-link quadruped costs a chain of eight links."""
+    chain = [i]
+    while tree.parents[chain[-1]] >= 0:
+        chain.append(tree.parents[chain[-1]])
+    links = [tree.links[k] for k in reversed(chain)]
+    q_slices, u_slices = tree.coordinate_slices(), tree.speed_slices()
+    q_index, u_index = (np.concatenate([np.arange(slices[link.name].start,
+                                                  slices[link.name].stop, dtype=int)
+                                        for link in links])
+                        for slices in (q_slices, u_slices))
+    return RigidBodyTree(links, gravity=tree.gravity), q_index, u_index
+
+
 def _point(point, dtype):
     point = jnp.zeros(3, dtype) if point is None else jnp.asarray(point, dtype)
     if point.shape != (3,):
@@ -63,16 +79,17 @@ def frame_pose(tree: RigidBodyTree, frame, q, p=None, *, point=None):
     the link's axes (default the link's own origin).
     """
     q, _, _ = _checked(tree, q)
-    i = _index(tree, frame)
-    rotations, origins = tree.link_poses(jnp.zeros((), q.dtype), q, p)
-    return rotations[i], origins[i] + rotations[i] @ _point(point, q.dtype)
+    chain, q_index, _ = _ancestors(tree, _index(tree, frame))
+    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), q[q_index], p)
+    return rotations[-1], origins[-1] + rotations[-1] @ _point(point, q.dtype)
 
 
-def _velocity(tree, i, point, axes, q, u, p):
-    rotations, _, omega, velocity = tree.link_states(jnp.zeros((), q.dtype), q, u, p)
-    omega, velocity = omega[i], velocity[i] + spatial.cross(omega[i], point)
+def _velocity(chain, point, axes, q, u, p):
+    """(ω, v) of the last link of `chain` (see `_ancestors`), at its coordinates and speeds."""
+    rotations, _, omega, velocity = chain.link_states(jnp.zeros((), q.dtype), q, u, p)
+    omega, velocity = omega[-1], velocity[-1] + spatial.cross(omega[-1], point)
     if axes == "world":
-        omega, velocity = rotations[i] @ omega, rotations[i] @ velocity
+        omega, velocity = rotations[-1] @ omega, rotations[-1] @ velocity
     return jnp.concatenate([omega, velocity])
 
 
@@ -82,7 +99,8 @@ def frame_velocity(tree: RigidBodyTree, frame, q, u, p=None, *, point=None, axes
     axes (module docstring)."""
     _check_axes(axes)
     q, u, _ = _checked(tree, q, u)
-    return _velocity(tree, _index(tree, frame), _point(point, q.dtype), axes, q, u, p)
+    chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
+    return _velocity(chain, _point(point, q.dtype), axes, q[q_index], u[u_index], p)
 
 
 @public_function(num_static=2)
@@ -91,9 +109,10 @@ def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="w
     docstring); the Jacobian of the velocity in the speeds (exact: it is linear in them)."""
     _check_axes(axes)
     q, _, _ = _checked(tree, q)
-    i, point = _index(tree, frame), _point(point, q.dtype)
-    zero = jnp.zeros(tree.num_speeds, q.dtype)
-    return jax.jacfwd(lambda u: _velocity(tree, i, point, axes, q, u, p))(zero)
+    chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
+    point, zero = _point(point, q.dtype), jnp.zeros(len(u_index), q.dtype)
+    columns = jax.jacfwd(lambda u: _velocity(chain, point, axes, q[q_index], u, p))(zero)
+    return jnp.zeros((6, tree.num_speeds), q.dtype).at[:, u_index].set(columns)
 
 
 @public_function(num_static=2)
@@ -104,12 +123,13 @@ def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=No
     axes (for local axes, the world-axes rates expressed in the frame's axes)."""
     _check_axes(axes)
     q, u, ud = _checked(tree, q, u, ud)
-    i, point = _index(tree, frame), _point(point, q.dtype)
-    qd = tree.coordinate_rates(jnp.zeros((), q.dtype), q, u, p)
-    _, rates = jax.jvp(lambda q, u: _velocity(tree, i, point, "world", q, u, p), (q, u),
+    chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
+    point, q, u, ud = _point(point, q.dtype), q[q_index], u[u_index], ud[u_index]
+    qd = chain.coordinate_rates(jnp.zeros((), q.dtype), q, u, p)
+    _, rates = jax.jvp(lambda q, u: _velocity(chain, point, "world", q, u, p), (q, u),
                        (qd, ud))
     if axes == "local":
-        rotation = tree.link_poses(jnp.zeros((), q.dtype), q, p)[0][i]
+        rotation = chain.link_poses(jnp.zeros((), q.dtype), q, p)[0][-1]
         rates = jnp.concatenate([rotation.T @ rates[:3], rotation.T @ rates[3:]])
     return rates
 

@@ -315,24 +315,19 @@ class RigidBodyTree(AbstractMultibody):
         """
         if not any(isinstance(link.joint, Fixed) for link in self.links):
             return self
-        # Each link's body (None: the world) and its placement in the body's frame.
-        body_of, members, links = {}, {}, []
+        body_of, members, links = self.welded_bodies(), {}, []
         for link in self.links:
-            rotation, translation = np.asarray(link.rotation), np.asarray(link.translation)
-            if link.parent is None:
-                body, base_r, base_t = None, np.eye(3), np.zeros(3)
-            else:
-                body, base_r, base_t = body_of[link.parent]
-            rotation, translation = base_r @ rotation, base_t + base_r @ translation
+            body, rotation, translation = body_of[link.name]
             if isinstance(link.joint, Fixed):
-                body_of[link.name] = (body, rotation, translation)
                 if body is not None:
                     members[body].append((link, rotation, translation))
             else:
-                body_of[link.name] = (link.name, np.eye(3), np.zeros(3))
-                members[link.name] = [(link, np.eye(3), np.zeros(3))]
-                links.append(dataclasses.replace(link, parent=body, rotation=rotation,
-                                                 translation=translation))
+                members[link.name] = [(link, rotation, translation)]
+                placement = (None, np.eye(3), np.zeros(3)) if link.parent is None \
+                    else body_of[link.parent]
+                links.append(dataclasses.replace(
+                    link, parent=placement[0], rotation=placement[1] @ np.asarray(link.rotation),
+                    translation=placement[2] + placement[1] @ np.asarray(link.translation)))
         if not links:  # nothing moves: keep the tree as it is
             return self
         for i, link in enumerate(links):
@@ -352,6 +347,21 @@ class RigidBodyTree(AbstractMultibody):
                                       translation + rotation @ np.asarray(load.point)))
         return RigidBodyTree(links, gravity=self.gravity, forces=self.forces, loads=loads,
                              potential=self.potential, time_dependent=self.time_dependent)
+
+    def welded_bodies(self) -> dict:
+        """{link: (body, R, r)}: the moving link each link is welded to by fixed joints (itself
+        for a link on a moving joint; None for links fixed to the world) and the link's
+        placement in that body's axes (R, r), NumPy: the bodies of `merge_fixed`."""
+        body_of = {}
+        for link in self.links:
+            if not isinstance(link.joint, Fixed):
+                body_of[link.name] = (link.name, np.eye(3), np.zeros(3))
+                continue
+            body, base_r, base_t = ((None, np.eye(3), np.zeros(3)) if link.parent is None
+                                    else body_of[link.parent])
+            body_of[link.name] = (body, base_r @ np.asarray(link.rotation),
+                                  base_t + base_r @ np.asarray(link.translation))
+        return body_of
 
     # -- joint motion and the recursion ---------------------------------------------------------
 
