@@ -5,7 +5,10 @@ value-dependent problems (NaN input, singular mass matrix, non-finite forcing) â
 that names the state; solver failures â†’ a RESULTS member, raised unless throw=False.
 """
 
+import os
 import re
+import subprocess
+import sys
 
 import diffrax
 import jax
@@ -461,10 +464,6 @@ def test_import_chooses_xla_cpu_emitters_or_says_it_could_not():
     """`import jaxdyn` turns XLA's CPU fusion emitters off (on the straight-line programs of
     small systems they generate code up to thousands of times slower), keeps a user's own
     choice, and warns, naming the switch, when JAX started before jaxdyn was imported."""
-    import os
-    import subprocess
-    import sys
-
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     scripts = {
         "first": ("import os, jaxdyn, jax.numpy as jnp; jnp.ones(1); "

@@ -416,7 +416,7 @@ def test_inertial_parameters_from_torques(tmp_path):
     has six identifiable combinations (Khalil and Dombre: ZZ₁ + m₂l₁², MX₁ + m₂l₁, MY₁, ZZ₂,
     MX₂, MY₂); the consistent estimate is a rigid body for every link and predicts torques at
     new states as the textbook does; with noise, its weighted residual is the noise's (χ²)."""
-    tree, p_true = _planar_arm_urdf(tmp_path / "arm.urdf")
+    tree, _ = _planar_arm_urdf(tmp_path / "arm.urdf")
     _, prior = _planar_arm_urdf(tmp_path / "prior.urdf", scale_inertia=1.3, com_shift=0.8)
     rng = np.random.default_rng(3)
     states = rng.normal(size=(2, 3, 60, 2))
