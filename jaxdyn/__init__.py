@@ -50,7 +50,10 @@ from ._form.newton_euler import (
 )
 from ._fit.experiment import Experiment as Experiment, MultipleShooting as MultipleShooting
 from ._fit.fit import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning, fit as fit
-from ._fit.torques import InertialFit as InertialFit, fit_inertial_parameters as fit_inertial_parameters
+from ._fit.torques import (
+    InertialFit as InertialFit,
+    fit_inertial_parameters as fit_inertial_parameters,
+)
 from ._fit.parametrisation import (
     AbstractParametrisation as AbstractParametrisation,
     InertiaTensor as InertiaTensor,

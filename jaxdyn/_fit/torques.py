@@ -22,12 +22,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._form.newton_euler import inertial_parameters, inverse_dynamics_regressor
+from .._form.newton_euler import (
+    UPPER,
+    inertia_at_origin,
+    inertial_parameters,
+    inverse_dynamics_regressor,
+)
 from .._system.tree import RigidBodyTree
 from .._system.urdf import LinkParameter
-
-_ROWS, _COLS = np.tril_indices(4, -1)
-_UPPER = np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2])  # I_O's entries in π
 
 
 class InertialFit(eqx.Module):
@@ -62,15 +64,9 @@ class InertialFit(eqx.Module):
     num_steps: int
 
 
-def _inertia_at_origin(pi):
-    """I_O (3, 3) from π (10,)."""
-    inertia = jnp.zeros((3, 3), pi.dtype).at[_UPPER].set(pi[4:])
-    return inertia + jnp.triu(inertia, 1).T
-
-
 def _pseudo_inertia(pi):
     """J (4, 4) from π (10,)."""
-    inertia = _inertia_at_origin(pi)
+    inertia = inertia_at_origin(pi)
     second_moment = 0.5 * jnp.trace(inertia) * jnp.eye(3, dtype=pi.dtype) - inertia
     return jnp.block([[second_moment, pi[1:4, None]], [pi[None, 1:4], pi[None, :1]]])
 
@@ -79,7 +75,7 @@ def _from_pseudo_inertia(j):
     """π (10,) from J (4, 4)."""
     second_moment = j[:3, :3]
     inertia = jnp.trace(second_moment) * jnp.eye(3, dtype=j.dtype) - second_moment
-    return jnp.concatenate([j[3:, 3], j[:3, 3], inertia[_UPPER]])
+    return jnp.concatenate([j[3:, 3], j[:3, 3], inertia[UPPER]])
 
 
 def _physical(pi):
@@ -87,7 +83,7 @@ def _physical(pi):
     mass, first_moment = pi[0], pi[1:4]
     com = first_moment / mass
     shift = mass * (jnp.dot(com, com) * jnp.eye(3, dtype=pi.dtype) - jnp.outer(com, com))
-    inertia = _inertia_at_origin(pi) - shift  # the parallel-axis theorem, backwards
+    inertia = inertia_at_origin(pi) - shift  # the parallel-axis theorem, backwards
     return mass, com, inertia
 
 
@@ -97,28 +93,38 @@ def _regressors(tree, q, u, ud, p, chunk):
     return jax.lax.map(one, (q, u, ud), batch_size=min(chunk, q.shape[0]))
 
 
+def _log_det(pi):
+    """log det J(π) of one link."""
+    return jnp.linalg.slogdet(_pseudo_inertia(pi))[1]
+
+
 def _barrier_objective(pi, mu, problem):
-    """½ ‖R π − c‖² + ½ w² ‖Vₙᵀ(π − π_prior)‖² − μ Σ log det J(πᵢ): convex in π, finite
+    """½ ‖S Vᵀ π − c‖² + ½ w² ‖Vₙᵀ(π − π_prior)‖² − μ Σ log det J(πᵢ): convex in π, finite
     exactly inside the consistent set."""
-    r_matrix, c, unseen, prior, pull = problem
+    r_matrix, c, unseen, prior, pull, _ = problem
     residual, prior_residual = r_matrix @ pi - c, pull * (unseen @ (pi - prior))
-    log_det = jax.vmap(lambda x: jnp.linalg.slogdet(_pseudo_inertia(x))[1])(pi.reshape(-1, 10))
+    log_det = jax.vmap(_log_det)(pi.reshape(-1, 10))
     return 0.5 * (residual @ residual + prior_residual @ prior_residual) - mu * jnp.sum(log_det)
 
 
 @jax.jit
 def _newton_step(pi, mu, problem):
     """One damped Newton step on the barrier problem, halved until every link's pseudo-inertia
-    stays positive definite and the objective falls (Armijo); returns the Newton decrement."""
+    stays positive definite and the objective falls (Armijo); returns the Newton decrement.
+    The Hessian is the quadratic part's constant one plus the barrier's, block-diagonal by
+    link (10 × 10 blocks)."""
     value, gradient = jax.value_and_grad(_barrier_objective)(pi, mu, problem)
-    step = -jnp.linalg.solve(jax.hessian(_barrier_objective)(pi, mu, problem), gradient)
+    blocks = jax.vmap(jax.hessian(_log_det))(pi.reshape(-1, 10))
+    hessian = problem[-1] - mu * jax.scipy.linalg.block_diag(*blocks)
+    step = -jnp.linalg.solve(hessian, gradient)
     decrement = -gradient @ step
 
     def acceptable(alpha):
         trial = pi + alpha * step
         feasible = jnp.all(jnp.linalg.eigvalsh(jax.vmap(_pseudo_inertia)(
             trial.reshape(-1, 10)))[:, 0] > 0)
-        return feasible & (_barrier_objective(trial, mu, problem) <= value - 0.25 * alpha * decrement)
+        sufficient = _barrier_objective(trial, mu, problem) <= value - 0.25 * alpha * decrement
+        return feasible & sufficient
 
     alpha = jax.lax.while_loop(lambda a: (a > 1e-12) & ~acceptable(a), lambda a: 0.5 * a,
                                jnp.ones((), pi.dtype))
@@ -171,9 +177,10 @@ def fit_inertial_parameters(
     over physically consistent bodies only: each link's pseudo-inertia J(πᵢ) = [[½ tr(I_O) 1 −
     I_O, m c], [m cᵀ, m]] positive definite (Wensing, Kim and Slotine, 2017), a convex problem
     solved by the barrier method from the prior (Newton steps on the objective − μ Σ log det
-    J(πᵢ), μ falling tenfold per stage) on the triangular factor R of the stacked regressor
-    (‖W^½(τ − Y π)‖² = ‖R π − Qᵀ W^½ τ‖² + const, so a step costs (10 N)³ whatever the number
-    of samples). Vₙ spans the combinations of π the regressor does not see (its null space),
+    J(πᵢ), μ falling tenfold per stage) on the reduced problem: with the SVD W^½ Y = U S Vᵀ of
+    the stacked regressor, ‖W^½(τ − Y π)‖² = ‖S Vᵀ π − Uᵀ W^½ τ‖² + const, so a step costs
+    (10 N)³ whatever the number of samples. Vₙ spans the combinations of π the regressor does
+    not see (its null space),
     λ = `prior_weight` and s, the regressor's largest singular value: the pull settles what the
     data do not determine and, where the prior's unseen part cannot be completed into rigid
     bodies that fit the data, biases the fit by about λ relative.
@@ -217,14 +224,14 @@ def fit_inertial_parameters(
         raise ValueError("weights must be finite and non-negative.")
 
     names = [link.name for link in tree.links]
+    unknown = sorted(set(links or ()) - set(names))
+    if unknown:
+        raise ValueError(f"links {unknown} are not in the tree (its links: {names}).")
     regressor = _regressors(tree, q, u, ud, p, chunk) * root_weights[:, :, None]
     regressor = regressor.reshape(k * m, len(names), 10)
     if links is None:
         seen = np.asarray(jnp.any(regressor != 0, axis=(0, 2)))
         links = [name for name, s in zip(names, seen) if s]
-    unknown = sorted(set(links) - set(names))
-    if unknown:
-        raise ValueError(f"links {unknown} are not in the tree (its links: {names}).")
     fitted = np.array([names.index(name) for name in links])
     for index in fitted:
         link = tree.links[index]
@@ -238,13 +245,14 @@ def fit_inertial_parameters(
     a = regressor[:, fitted].reshape(k * m, 10 * len(fitted))
     b = (tau * root_weights).ravel() - regressor.reshape(k * m, -1) @ prior.ravel() \
         + a @ prior[fitted].ravel()  # the links not fitted keep the prior's torques
-    _, singular, directions = np.linalg.svd(np.asarray(a), full_matrices=False)
-    rank = int(np.sum(singular > 1e-10 * singular[0]))
-    unseen = jnp.asarray(directions[rank:])  # the combinations of π the torques do not see
-    least_squares = jnp.linalg.lstsq(a, b, rcond=1e-10)[0]
-    # The problem reduced to the triangular factor: [a | b] = Q [[R, c], [0, r]].
-    factor = jnp.linalg.qr(jnp.concatenate([a, b[:, None]], axis=1), mode="r")
-    r_matrix, c = factor[:, :-1], factor[:, -1]
+    # One SVD a = U S Vᵀ gives the rank, the minimum-norm least squares and the reduced
+    # problem: ‖a π − b‖² = ‖S Vᵀ π − Uᵀ b‖² + const.
+    left, singular, directions = jnp.linalg.svd(a, full_matrices=False)
+    rank = int(np.sum(np.asarray(singular) > 1e-10 * float(singular[0])))
+    c = left.T @ b
+    least_squares = directions[:rank].T @ (c[:rank] / singular[:rank])
+    r_matrix = singular[:, None] * directions
+    unseen = directions[rank:]  # the combinations of π the torques do not see
     # A prior whose pseudo-inertia is singular (a massless link) is nudged inside the cone.
     pseudo = jax.vmap(_pseudo_inertia)(prior[fitted])
     nudge = 1e-9 * jnp.max(jnp.trace(pseudo, axis1=1, axis2=2)) * jnp.eye(4, dtype=q.dtype)[None]
@@ -255,8 +263,9 @@ def fit_inertial_parameters(
                          "give physically consistent prior masses, centres of mass and "
                          "inertias.")
     start = jax.vmap(_from_pseudo_inertia)(pseudo + nudge).ravel()
-    problem = (r_matrix, c, unseen, prior[fitted].ravel(),
-               jnp.asarray(np.sqrt(prior_weight) * singular[0], q.dtype))
+    pull = np.sqrt(prior_weight) * singular[0]
+    quadratic = r_matrix.T @ r_matrix + pull**2 * unseen.T @ unseen  # its constant Hessian
+    problem = (r_matrix, c, unseen, prior[fitted].ravel(), pull, quadratic)
     consistent, converged, num_steps = _interior_point(problem, start, tolerance, max_steps)
     consistent = consistent.reshape(-1, 10)
 
@@ -274,7 +283,7 @@ def fit_inertial_parameters(
         least_squares=jnp.zeros_like(prior).at[fitted].set(least_squares.reshape(-1, 10)),
         links=tuple(links),
         rank=rank,
-        singular_values=singular,
+        singular_values=np.asarray(singular),
         residual_rms=rms(consistent.ravel()),
         least_squares_rms=rms(least_squares),
         converged=converged,

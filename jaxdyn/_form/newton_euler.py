@@ -29,6 +29,7 @@ from .._system import spatial
 from .._system.tree import RigidBodyTree, checked_state as _checked
 
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
+UPPER = (np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2]))  # π[4:] within I_O
 
 
 def inertial_parameters(tree: RigidBodyTree, p=None, dtype=None) -> jax.Array:
@@ -43,12 +44,17 @@ def inertial_parameters(tree: RigidBodyTree, p=None, dtype=None) -> jax.Array:
                                      - coms[:, :, None] * coms[:, None, :])
     origin = inertias + shift
     return jnp.concatenate([masses[:, None], masses[:, None] * coms,
-                            origin[:, [0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]], axis=-1)
+                            origin[:, UPPER[0], UPPER[1]]], axis=-1)
+
+
+def inertia_at_origin(parameters):
+    """I_O (…, 3, 3), symmetric, from π (…, 10)."""
+    return parameters[..., _SYMMETRIC]
 
 
 def _split(parameters):
     """(m (N,), h = m c (N, 3), I_O (N, 3, 3)) from π (N, 10)."""
-    return parameters[:, 0], parameters[:, 1:4], parameters[:, _SYMMETRIC]
+    return parameters[:, 0], parameters[:, 1:4], inertia_at_origin(parameters)
 
 
 def _momentum(mass, first_moment, inertia, omega, velocity):
@@ -161,13 +167,13 @@ def _transport(parameters, rotation, translation):
     m, R h + m r, and about the body's origin I = R I_O Rᵀ + m (|r|² 1 − r rᵀ) + 2 (r·R h) 1
     − r (R h)ᵀ − (R h) rᵀ (the parallel-axis theorem with the first moment). Linear in π."""
     mass, first_moment = parameters[0], rotation @ parameters[1:4]
-    inertia = (rotation @ parameters[_SYMMETRIC] @ rotation.T
+    inertia = (rotation @ inertia_at_origin(parameters) @ rotation.T
                + mass * (translation @ translation * np.eye(3) - np.outer(translation,
                                                                           translation))
                + 2 * (translation @ first_moment) * np.eye(3)
                - np.outer(translation, first_moment) - np.outer(first_moment, translation))
     return np.concatenate([[mass], first_moment + mass * translation,
-                           inertia[[0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]])
+                           inertia[UPPER]])
 
 
 def _welding(tree, bodies):
