@@ -1,5 +1,6 @@
 """Work–precision: final-state error against run time for the solvers `jaxdyn.simulate` can use,
-and for SciPy's `solve_ivp` (DOP853) on a NumPy right-hand side, over tolerances 1e-4 … 1e-12.
+beside the same diffrax solvers on the fastest hand-written equations known (the floor) and
+SciPy's `solve_ivp` (DOP853) on a NumPy right-hand side, over tolerances 1e-4 … 1e-12.
 
 Run: python benchmarks/bench_work_precision.py      (about 5 minutes; writes
      benchmarks/work_precision.csv and benchmarks/work_precision.png)
@@ -8,8 +9,12 @@ Systems: a chaotic double pendulum (θ = (1.5, −1.0) from rest) and the elasti
 (worked example 25.2), both over 10 s. The reference solution is jaxdyn with Dopri8 at
 rtol = atol = 1e-13, cross-checked against SciPy's DOP853 at 1e-13 on the hand-written
 equations; their difference (printed) bounds how far down the errors below mean anything.
-Errors are max |q(t1) − q_ref(t1)|; times are medians of interleaved rounds after compilation,
-each call a whole `simulate` (or `solve_ivp`) as a user makes it.
+Errors are max |q(t1) − q_ref(t1)|; times are medians of rounds after compilation, each call
+a whole `simulate` (or `solve_ivp`) as a user makes it: `simulate` not jitted, with `save="q"`.
+The floor ("diffrax, by hand") is `jax.jit(diffrax.diffeqsolve)` with the same solver,
+tolerances, PID controller and final-state saving on the closed form with y = [q; q̇]: the
+double pendulum's with s = sin(θ₁ − θ₂), c = cos(θ₁ − θ₂), den = m₁ + m₂ s²
+(`_systems.double_pendulum_fastest`), the elastic pendulum's textbook form.
 """
 
 import csv
@@ -27,7 +32,13 @@ jax.config.update("jax_enable_x64", True)
 import jaxdyn  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _systems import DOUBLE_PENDULUM, ELASTIC_PENDULUM, as_arrays  # noqa: E402
+from _systems import (  # noqa: E402
+    DOUBLE_PENDULUM,
+    ELASTIC_PENDULUM,
+    as_arrays,
+    double_pendulum_fastest,
+    elastic_hand,
+)
 from bench_batch import numpy_rhs as double_pendulum_rhs  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -48,9 +59,24 @@ def elastic_rhs(p):
 
 
 CASES = [
-    ("double pendulum (chaotic)", DOUBLE_PENDULUM, np.array([1.5, -1.0]), double_pendulum_rhs),
-    ("elastic pendulum", ELASTIC_PENDULUM, np.array([1.5, 0.8]), elastic_rhs),
+    ("double pendulum (chaotic)", DOUBLE_PENDULUM, np.array([1.5, -1.0]), double_pendulum_rhs,
+     double_pendulum_fastest),
+    ("elastic pendulum", ELASTIC_PENDULUM, np.array([1.5, 0.8]), elastic_rhs, elastic_hand),
 ]
+
+
+def floor_solve(hand, n, solver, tol):
+    """jax.jit of diffeqsolve on the hand-written equations, y = [q; q̇], final state saved."""
+    def field(t, y, p):
+        return jax.numpy.concatenate([y[n:], hand(t, y[:n], y[n:], p)])
+
+    @jax.jit
+    def solve(y0, p):
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(field), solver, 0.0, T1, None, y0, args=p,
+            saveat=diffrax.SaveAt(t1=True), max_steps=10**6,
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+    return solve
 
 
 def median_seconds(fn, rounds=5):
@@ -63,7 +89,7 @@ def median_seconds(fn, rounds=5):
     return float(np.median(samples))
 
 
-def study(name, system, q0, rhs_factory):
+def study(name, system, q0, rhs_factory, hand):
     p = as_arrays(system.params)
     u0 = np.zeros_like(q0)
     rhs = rhs_factory(system.params)
@@ -73,7 +99,7 @@ def study(name, system, q0, rhs_factory):
                                                 rtol=1e-13, atol=1e-13).y[:2, -1]
     spread = float(np.max(np.abs(reference - scipy_reference)))
     print(f"\n{name}: reference Dopri8 1e-13 vs SciPy DOP853 1e-13 differ by {spread:.1e}")
-    print(f"{'solver':14s} {'tol':>7s} {'error':>9s} {'steps*':>7s} {'ms':>8s}"
+    print(f"{'solver':24s} {'tol':>7s} {'error':>9s} {'steps*':>7s} {'ms':>8s}"
           "   (*for SciPy: right-hand-side evaluations)")
     rows = []
     for solver_name, solver in SOLVERS.items():
@@ -86,6 +112,13 @@ def study(name, system, q0, rhs_factory):
             error = float(np.max(np.abs(np.asarray(solution.q[-1]) - reference)))
             rows.append((name, f"jaxdyn {solver_name}", tol, error, int(solution.num_steps),
                          seconds))
+            floor = floor_solve(hand, len(q0), solver, tol)
+            y0 = jax.numpy.asarray(np.concatenate([q0, u0]))
+            by_hand = floor(y0, p)
+            seconds = median_seconds(lambda floor=floor, y0=y0: floor(y0, p).ys)
+            error = float(np.max(np.abs(np.asarray(by_hand.ys[-1, :len(q0)]) - reference)))
+            rows.append((name, f"diffrax {solver_name}, by hand", tol, error,
+                         int(by_hand.stats["num_steps"]), seconds))
     for tol in TOLERANCES:
         def run_scipy(tol=tol):
             return scipy.integrate.solve_ivp(rhs, (0, T1), [*q0, *u0], method="DOP853",
@@ -95,7 +128,7 @@ def study(name, system, q0, rhs_factory):
         error = float(np.max(np.abs(solution.y[:2, -1] - reference)))
         rows.append((name, "SciPy DOP853", tol, error, int(solution.nfev), seconds))
     for _, solver_name, tol, error, steps, seconds in rows:
-        print(f"{solver_name:14s} {tol:7.0e} {error:9.2e} {steps:7d} {1e3 * seconds:8.2f}")
+        print(f"{solver_name:24s} {tol:7.0e} {error:9.2e} {steps:7d} {1e3 * seconds:8.2f}")
     return rows, spread
 
 
@@ -122,8 +155,11 @@ def main():
     for ax, (name, *_rest) in zip(axes, CASES):
         for solver in sorted({r[1] for r in all_rows}):
             rows = [r for r in all_rows if r[0] == name and r[1] == solver]
-            ax.loglog([r[5] * 1e3 for r in rows], [max(r[3], 1e-16) for r in rows], "o-",
-                      label=solver)
+            by_hand = solver.startswith("diffrax")
+            color = ({"Tsit5": "C0", "Dopri5": "C1", "Dopri8": "C2"}.get(
+                solver.split()[1].rstrip(","), "C3"))
+            ax.loglog([r[5] * 1e3 for r in rows], [max(r[3], 1e-16) for r in rows],
+                      "x--" if by_hand else "o-", color=color, label=solver)
         ax.axhline(max(spreads[name], 1e-16), color="grey", ls=":", label="reference spread")
         ax.set_xlabel("run time per solve (ms)")
         ax.set_ylabel("final-state error")

@@ -13,6 +13,7 @@ import tqdm
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._compile import gc_paused
 from ._errors import error_if, reports_state
 from ._form.controlled import with_inputs
 from ._integrate import simulate
@@ -187,8 +188,9 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
     solution = None
     for k in tqdm.trange(count, disable=not progress, unit="chunk", desc="simulate_batch"):
         members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
-        piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
-                             _place(shared, mesh, PartitionSpec()))
+        with gc_paused():  # the first chunk traces and compiles
+            piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
+                                 _place(shared, mesh, PartitionSpec()))
         if in_host:
             piece = _to_host(piece)
         if throw:

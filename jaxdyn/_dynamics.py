@@ -206,8 +206,7 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
     """
     if factorisation is not None:  # given for systems evaluated as arrays only
         return _equations(dynamics, t, q, u, p, factorisation=factorisation, small=False)
-    return unrolled(functools.partial(_equations, dynamics, factorisation=None, small=True),
-                    t, q, u, p,
+    return unrolled(functools.partial(_straight_line_equations, dynamics), t, q, u, p,
                     otherwise=functools.partial(_equations, dynamics, factorisation=None,
                                                 small=False))
 
@@ -215,8 +214,12 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
 def evaluated_as_arrays(dynamics, t, q, u, p) -> bool:
     """Whether `equations_of_motion` evaluates this system as array operations (too large for
     straight-line code)."""
-    return not fits(functools.partial(_equations, dynamics, factorisation=None, small=True),
-                    t, q, u, p)
+    return not fits(functools.partial(_straight_line_equations, dynamics), t, q, u, p)
+
+
+@eqx.filter_jit  # its trace is cached: `fits` and `unrolled` then trace the user's functions once
+def _straight_line_equations(dynamics, t, q, u, p):
+    return _equations(dynamics, t, q, u, p, factorisation=None, small=True)
 
 
 def _equations(dynamics, t, q, u, p, *, factorisation, small):
@@ -232,9 +235,16 @@ def _equations(dynamics, t, q, u, p, *, factorisation, small):
 def accelerations_from_equations(dynamics, t, q, u, p, *, small):
     """(u̇, singular, nonfinite) by an LDLᵀ solve of the formulation's M u̇ = f: written out in
     straight-line code when `small`, else block by block (`mass_matrix_blocks`)."""
-    mass_matrix, forcing = dynamics.form_equations(t, q, u, p)
+    mass_matrix, forcing = formed_equations(dynamics, t, q, u, p)
     blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
     return solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
+
+
+@eqx.filter_jit  # its trace is cached: the failure diagnosis reuses the solve's trace
+def formed_equations(dynamics, t, q, u, p):
+    """(M, f) of M u̇ = f, as `AbstractDynamics.form_equations` forms them, traced once per
+    system and shapes."""
+    return dynamics.form_equations(t, q, u, p)
 
 
 def _mass_matrix_structure(dynamics, t, q, u, p):

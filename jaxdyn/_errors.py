@@ -28,7 +28,8 @@ def error_if(x, checks, state=None, *, failed=None):
     """`x`, or an error if one of `checks` fails.
 
     `checks`: a sequence of (pred, message) with boolean scalar preds, or a function returning
-    one; the first true pred is reported. `failed`: a cheap boolean saying whether any check
+    one; the first true pred is reported. An entry (pred, message, state) ends its message with
+    its own state instead of the shared one. `failed`: a cheap boolean saying whether any check
     fails (by default, the checks themselves). Given `failed` and a function, the checks are
     only evaluated in the branch taken on failure: detecting a failure then costs as little as
     computing `failed` (say, a NaN in `x`), and finding its cause costs nothing until it
@@ -43,22 +44,23 @@ def error_if(x, checks, state=None, *, failed=None):
     if not callable(checks):
         listed = list(checks)
         checks = lambda: listed  # noqa: E731
-    messages = tuple(message for _, message in checks())
+    messages = tuple(check[1] for check in checks())
     if failed is None:
-        failed = jnp.any(_preds(checks))
+        failed = jnp.any(_preds(checks()))
     described = state if callable(state) else lambda: state
 
     def fail():
-        state = described()
-        if state is None:
-            state = {}
-        elif not isinstance(state, dict):
-            state = dict(zip("tqu", state))
-        labels = tuple(state)
-        preds = jax.lax.stop_gradient(_preds(checks))
-        values = jax.lax.stop_gradient(tuple(state.values()))
-        raise_ = functools.partial(_raise, messages, labels)
-        return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds, *values,
+        listed = checks()
+        shared = described() if any(len(check) == 2 for check in listed) else None
+        labels, values = [], []
+        for check in listed:
+            labelled = _labelled(check[2] if len(check) == 3 else shared)
+            labels.append(tuple(labelled))
+            values.append(tuple(labelled.values()))
+        preds = jax.lax.stop_gradient(_preds(listed))
+        raise_ = functools.partial(_raise, messages, tuple(labels))
+        return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds,
+                                 jax.lax.stop_gradient(tuple(values)),
                                  vmap_method="sequential")
 
     # `unvmap_any` keeps the `cond` a real branch under vmap: the host is only called when some
@@ -68,18 +70,26 @@ def error_if(x, checks, state=None, *, failed=None):
     return jax.tree_util.tree_map(lambda a: a + jnp.zeros((), a.dtype) * flag.astype(a.dtype), x)
 
 
-def _preds(checks):
-    return jnp.stack([jnp.asarray(pred) for pred, _ in checks()])
+def _labelled(state):
+    if state is None:
+        return {}
+    return state if isinstance(state, dict) else dict(zip("tqu", state))
 
 
-def _raise(messages, labels, preds, *state):
+def _preds(listed):
+    return jnp.stack([jnp.asarray(check[0]) for check in listed])
+
+
+def _raise(messages, labels, preds, values):
     preds = np.asarray(preds)
     if not preds.any():  # another batch member failed
         return np.zeros((), np.bool_)
-    message = messages[int(np.argmax(preds))]
-    if labels:
-        values = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in zip(labels, state))
-        message = f"{message}\n\nIt happened at {values}."
+    first = int(np.argmax(preds))
+    message = messages[first]
+    if labels[first]:
+        described = ", ".join(f"{k} = {np.asarray(v).tolist()}"
+                              for k, v in zip(labels[first], values[first]))
+        message = f"{message}\n\nIt happened at {described}."
     if not _where:
         _where.append(message)
     raise _CheckFailed(message)

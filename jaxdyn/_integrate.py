@@ -14,9 +14,10 @@ from ._dynamics import (
     constant_mass_matrix,
     equations_of_motion,
     evaluated_as_arrays,
+    formed_equations,
     mass_matrix_blocks,
 )
-from ._linalg import condition_number, factorise
+from ._linalg import factorise
 from ._compile import filter_jit
 from ._form.controlled import find_controlled, with_inputs
 from ._errors import check_finite, check_static_indexing, error_if, reports_state
@@ -458,43 +459,56 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
     t0 = start[0]
     t_last = last[0]
 
-    def singular_checks():
-        regular_at_start = condition(*start) < _ILL_CONDITIONED
+    def checks():  # evaluated only in the branch taken on failure
         singular = result == RESULTS.singular_mass_matrix
-        return ([(singular & regular_at_start, COORDINATE_SINGULARITY)]
-                + [(result == code, RESULTS[code]) for code in _EQUATION_FAILURES])
-
-    failed = jnp.any(jnp.stack([result == code for code in _EQUATION_FAILURES]))
-    ts = error_if(ts, singular_checks, failure, failed=failed)
-    covered = jnp.abs(t_last - t0)
-    needed = jnp.ceil(max_steps * jnp.abs(t1 - t0) / jnp.where(covered > 0, covered, 1))
-
-    def budget_checks():
-        ill = condition(*last) >= _ILL_CONDITIONED
+        regular_at_start = condition(*start) < _ILL_CONDITIONED
         out_of_steps = result == RESULTS.max_steps_reached
-        return [(out_of_steps & ill, MAX_STEPS_ILL_CONDITIONED), (out_of_steps, MAX_STEPS)]
+        ill = condition(*last) >= _ILL_CONDITIONED
+        covered = jnp.abs(t_last - t0)
+        budget = {"t reached": t_last, "max_steps": jnp.asarray(max_steps),
+                  "steps the whole interval needs (estimate)": jnp.ceil(
+                      max_steps * jnp.abs(t1 - t0) / jnp.where(covered > 0, covered, 1)),
+                  "mass matrix condition number (start, last)": jnp.stack(
+                      [condition(*start), condition(*last)])}
+        listed = [(singular & regular_at_start, COORDINATE_SINGULARITY, failure)]
+        listed += [(result == code, RESULTS[code], failure) for code in _EQUATION_FAILURES]
+        listed += [(out_of_steps & ill, MAX_STEPS_ILL_CONDITIONED, budget),
+                   (out_of_steps, MAX_STEPS, budget)]
+        if structure_preserving:  # the codes of its implicit step (`VariationalIntegrator`)
+            listed += [(result == RESULTS.nonlinear_max_steps_reached, NEWTON, {"t": t_last}),
+                       (result == RESULTS.nonlinear_divergence, DISTANT_ROOT, {"t": t_last})]
+        listed += [(result == RESULTS._name_to_item[name], RESULTS[RESULTS._name_to_item[name]],
+                    None) for name in RESULTS._name_to_item if name not in handled]
+        return listed
 
-    ts = error_if(ts, budget_checks, lambda: {
-        "t reached": t_last, "max_steps": jnp.asarray(max_steps),
-        "steps the whole interval needs (estimate)": needed,
-        "mass matrix condition number (start, last)": jnp.stack(
-            [condition(*start), condition(*last)])},
-        failed=result == RESULTS.max_steps_reached)
-    handled = set(_HANDLED)
-    if structure_preserving:  # the codes of its implicit step (`jaxdyn.VariationalIntegrator`)
-        ts = error_if(ts, [(result == RESULTS.nonlinear_max_steps_reached, NEWTON),
-                           (result == RESULTS.nonlinear_divergence, DISTANT_ROOT)],
-                      {"t": t_last})
-        handled |= {"nonlinear_max_steps_reached", "nonlinear_divergence"}
-    return error_if(ts, [(result == RESULTS._name_to_item[name],
-                          RESULTS[RESULTS._name_to_item[name]])
-                         for name in RESULTS._name_to_item if name not in handled])
+    handled = _HANDLED | ({"nonlinear_max_steps_reached", "nonlinear_divergence"}
+                          if structure_preserving else set())
+    # One branch for every failure: its messages share the mass matrix's condition numbers.
+    return error_if(ts, checks, failed=result != RESULTS.successful)
 
 
 @eqx.filter_jit  # traced once per solve's compilation, though the messages ask for it 6 times
 def _condition(dynamics, p, t, q, u):
-    """κ(M) at one state, from its eigenvalues (∞ where M is not positive definite)."""
-    return condition_number(jax.lax.stop_gradient(dynamics.form_equations(t, q, u, p)[0]))
+    """κ(M) at one state (∞ where M is not positive definite), for failure messages only.
+
+    M is formed in the program and its eigenvalues found on the host (NumPy): only a failed
+    solve asks for them, and an eigensolver in the program would cost every solve its
+    compilation (and the first one in a process LAPACK's set-up, ~0.1 s)."""
+    mass_matrix = jax.lax.stop_gradient(formed_equations(dynamics, t, q, u, p)[0])
+    return jax.pure_callback(_host_condition, jax.ShapeDtypeStruct((), mass_matrix.dtype),
+                             mass_matrix, vmap_method="expand_dims")
+
+
+def _host_condition(mass_matrix):
+    mass_matrix = np.asarray(mass_matrix)
+    out = np.full(mass_matrix.shape[:-2], np.inf, mass_matrix.dtype)
+    for index in np.ndindex(out.shape):
+        matrix = mass_matrix[index]
+        if np.all(np.isfinite(matrix)):
+            eigenvalues = np.linalg.eigvalsh(matrix)
+            if eigenvalues[0] > 0:
+                out[index] = eigenvalues[-1] / eigenvalues[0]
+    return out
 
 
 # A mass matrix this ill-conditioned loses half the digits of the accelerations.
@@ -631,30 +645,31 @@ def _diagnose(dynamics, p, factorisation, t, q, u, stalled, direction, span):
     Returns (the RESULTS code, (t, q, u) where the equations fail).
     """
     t, q, u = jax.lax.stop_gradient((t, q, u))
-    rates, accelerations, singular, nonfinite = equations_of_motion(dynamics, t, q, u, p,
-                                                                    factorisation)
-    rates = jnp.where(jnp.isfinite(rates), rates, 0)
-    accelerations = jnp.where(jnp.isfinite(accelerations), accelerations, 0)
     base = 4 * jnp.finfo(t.dtype).eps * jnp.maximum(jnp.abs(t), span)
 
-    def failed(state):
-        _, _, _, rates, accelerations, singular, nonfinite = state
-        finite = jnp.all(jnp.isfinite(rates)) & jnp.all(jnp.isfinite(accelerations))
-        return singular | nonfinite | ~finite
-
+    # One evaluation in the loop: the first at the last state itself (h = 0), whose rates
+    # and accelerations (made finite) direct the probes after it.
     def searching(carry):
-        k, state = carry
-        return stalled & ~failed(state) & (k < 64)
+        k, _, _, singular, nonfinite, finite = carry
+        return (k == 0) | (stalled & ~(singular | nonfinite | ~finite) & (k <= 64))
 
     def probe(carry):
-        k, _ = carry
-        h = direction * base * 2.0**k
-        tk, qk, uk = t + h, q + h * rates, u + h * accelerations
-        return k + 1, (tk, qk, uk, *equations_of_motion(dynamics, tk, qk, uk, p, factorisation))
+        k, _, direction_of_motion, *_ = carry
+        h = jnp.where(k == 0, 0, direction * base * 2.0 ** (k - 1)).astype(t.dtype)
+        rates, accelerations = direction_of_motion
+        state = (t + h, q + h * rates, u + h * accelerations)
+        rates_k, accelerations_k, singular, nonfinite = equations_of_motion(dynamics, *state, p,
+                                                                            factorisation)
+        finite = jnp.all(jnp.isfinite(rates_k)) & jnp.all(jnp.isfinite(accelerations_k))
+        direction_of_motion = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(k == 0, jnp.where(jnp.isfinite(new), new, 0), old),
+            (rates_k, accelerations_k), direction_of_motion)
+        return k + 1, state, direction_of_motion, singular, nonfinite, finite
 
-    start = (t, q, u, rates, accelerations, singular, nonfinite)
-    _, state = jax.lax.while_loop(searching, probe, (jnp.array(0), start))
-    t_fail, q_fail, u_fail, _, _, singular, nonfinite = state
+    start = (jnp.array(0), (t, q, u), (jnp.zeros_like(q), jnp.zeros_like(u)),
+             jnp.array(False), jnp.array(False), jnp.array(True))
+    _, (t_fail, q_fail, u_fail), _, singular, nonfinite, _ = jax.lax.while_loop(
+        searching, probe, start)
     by_constraints = singular & dynamics.singular_constraints(t_fail, q_fail, u_fail, p)
     code = RESULTS.where(singular, RESULTS.singular_mass_matrix,
                          RESULTS.where(nonfinite, RESULTS.nonfinite_forcing,

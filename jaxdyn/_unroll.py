@@ -144,9 +144,7 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
     `args` are pytrees of arrays; the result has the structure of ``fn(*args)``.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    closed, out_struct = jax.make_jaxpr(
-        lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)), return_shape=True
-    )(*leaves)
+    closed, out_struct = _traced(fn, leaves, treedef)
     try:
         outs = evaluate(closed, leaves, MAX_ELEMENTS if max_elements is None else max_elements)
     except _Fallback:
@@ -159,13 +157,30 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
 def fits(fn, *args, max_elements: int | None = None) -> bool:
     """Whether `unrolled(fn, *args)` would evaluate ``fn`` as straight-line scalar code."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    closed = jax.make_jaxpr(lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)))(*leaves)
+    closed, _ = _traced(fn, leaves, treedef)
     limit = MAX_ELEMENTS if max_elements is None else max_elements
     try:
         evaluate(closed, leaves, limit, emit=False)
     except _Fallback:
         return False
     return True
+
+
+def _traced(fn, leaves, treedef):
+    """(closed jaxpr, output shapes) of ``fn`` on the leaves' structure. A program that is one
+    call of a jitted function is its callee: `fn` can then be a `jax.jit` (or
+    `eqx.filter_jit`) whose trace JAX caches, so that several analyses of the same equations
+    (does it fit, evaluate it) trace the user's functions once."""
+    closed, out_struct = jax.make_jaxpr(
+        lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)), return_shape=True
+    )(*leaves)
+    jaxpr = closed.jaxpr
+    if len(jaxpr.eqns) == 1:
+        sub = _inline_jaxpr(jaxpr.eqns[0])
+        if (sub is not None and list(jaxpr.eqns[0].invars) == list(jaxpr.invars)
+                and list(jaxpr.eqns[0].outvars) == list(jaxpr.outvars)):
+            closed = sub
+    return closed, out_struct
 
 
 def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = True):
