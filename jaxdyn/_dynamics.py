@@ -20,7 +20,8 @@ from ._linalg import (
     solve_mass_matrix,
 )
 from ._state import public_method
-from ._unroll import Symbol, fits, is_constant, structure, unrolled
+from ._unroll import Symbol, give_up_beyond, is_constant, structure, unrolled
+from ._unroll import straight_line_size as straight_line_program_size
 
 
 class AbstractDynamics(eqx.Module):
@@ -211,10 +212,11 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
                                                 small=False))
 
 
-def evaluated_as_arrays(dynamics, t, q, u, p) -> bool:
-    """Whether `equations_of_motion` evaluates this system as array operations (too large for
-    straight-line code)."""
-    return not fits(functools.partial(_straight_line_equations, dynamics), t, q, u, p)
+def straight_line_size(dynamics, t, q, u, p) -> int | None:
+    """The scalar operations of `equations_of_motion` as straight-line code, or None when it
+    evaluates this system as array operations (too large for straight-line code)."""
+    return straight_line_program_size(functools.partial(_straight_line_equations, dynamics),
+                                      t, q, u, p)
 
 
 @eqx.filter_jit  # its trace is cached: `fits` and `unrolled` then trace the user's functions once
@@ -235,6 +237,8 @@ def _equations(dynamics, t, q, u, p, *, factorisation, small):
 def accelerations_from_equations(dynamics, t, q, u, p, *, small):
     """(u̇, singular, nonfinite) by an LDLᵀ solve of the formulation's M u̇ = f: written out in
     straight-line code when `small`, else block by block (`mass_matrix_blocks`)."""
+    if small:  # the LDLᵀ factorisation written out emits about m³/6 multiply–adds
+        give_up_beyond(u.shape[-1] ** 3 // 6)
     mass_matrix, forcing = formed_equations(dynamics, t, q, u, p)
     blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
     return solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)

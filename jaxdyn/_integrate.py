@@ -13,9 +13,9 @@ from ._dynamics import (
     AbstractDynamics,
     constant_mass_matrix,
     equations_of_motion,
-    evaluated_as_arrays,
     formed_equations,
     mass_matrix_blocks,
+    straight_line_size,
 )
 from ._linalg import factorise
 from ._compile import filter_jit
@@ -192,14 +192,30 @@ def simulate(
     # Few arguments: binding them is part of the per-call cost.
     save = (save,) if isinstance(save, str) else tuple(save)
     _check_save(save, dynamics)
-    options = (dense, save, solver, stepsize_controller, max_steps, adjoint, throw)
-    return _simulate(dynamics, q0, u0, numbers, options)
+    # The entries a derivative can reach are the traced ones (of a caller's jax.grad, jit or
+    # vmap), not concrete arrays closed over: a robot's hundreds of inertial parameters when
+    # only q0 is differentiated. Counted with the inputs' arrays (a policy's weights).
+    traced = [x for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))
+              if isinstance(x, jax.core.Tracer)]
+    reachable = differentiable_size([x for x in jax.tree_util.tree_leaves(
+        (q0, u0, numbers[0], _inputs_of(dynamics))) if isinstance(x, jax.core.Tracer)])
+    options = (dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable)
+    if traced:  # staged into a caller's program: diagnoses failures itself
+        return _simulate(dynamics, q0, u0, numbers, (*options, False))
+    # Called eagerly: first a lean program, without the diagnosis of failures (which locates
+    # a singular mass matrix, tells its cause and formats the message: as much to compile as
+    # the equations again). Only when the solve fails is the full program compiled and run,
+    # from the same inputs, to the same steps.
+    solution = _simulate(dynamics, q0, u0, numbers, (*options, True))
+    if not np.any(np.asarray(solution.result._value) != RESULTS.successful._value):
+        return solution
+    return _simulate(dynamics, q0, u0, numbers, (*options, False))
 
 
 @filter_jit
 def _simulate(dynamics, q0, u0, numbers, options):
     p, t0, t1, ts, rtol, atol, dt0 = numbers
-    dense, save, solver, stepsize_controller, max_steps, adjoint, throw = options
+    dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable, lean = options
     q0 = check_vector(q0, "q0")
     u0 = check_vector(u0, "u0")
     if q0.dtype != u0.dtype:
@@ -228,8 +244,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
     # A mass matrix of the parameters alone is factored once, here, not at every step (in
     # straight-line code it folds to a few operations per step anyway).
     factorisation = None
-    if (evaluated_as_arrays(dynamics, t0, q0, u0, p)
-            and constant_mass_matrix(dynamics, t0, q0, u0, p)):
+    size = straight_line_size(dynamics, t0, q0, u0, p)
+    if size is None and constant_mass_matrix(dynamics, t0, q0, u0, p):
         factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p), unrolled=False,
                                   blocks=mass_matrix_blocks(dynamics, t0, q0, u0, p))
 
@@ -254,13 +270,13 @@ def _simulate(dynamics, q0, u0, numbers, options):
                             controller_state=True)
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
-    # Counted with the inputs' arrays (a policy's weights): each may be differentiated.
-    forward = (adjoint is None and not dense
-               and differentiable_size((q0, u0, p, _inputs_of(dynamics))) <= MAX_FORWARD)
+    forward = adjoint is None and not dense and reachable <= MAX_FORWARD
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
+            and size is not None and size <= WRITTEN_OUT_STAGES_MAX
             and (forward or isinstance(adjoint, diffrax.ForwardMode))):
-        # The same steps, without a loop over the stages (2× faster on small systems). Not
-        # for reverse mode, whose pass through written-out stages costs 3× diffrax's loop.
+        # The same steps, without a loop over the stages (2–3× faster on small systems).
+        # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
+        # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`).
         solver = UnrolledStages(solver)
     if dynamics.state_projection() is not None:
         solver = _Projected(solver)
@@ -276,14 +292,18 @@ def _simulate(dynamics, q0, u0, numbers, options):
         q, u = jax.vmap(projection, in_axes=(0, 0, 0, None))(solution.ts[0], q, u, p)
     t_last = solution.ts[1][0]
     stalled = solution.controller_state[-1]
-    result, failure = _diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
-                                stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
-    result = RESULTS.where(stalled, result, RESULTS.promote(solution.result))
+    if lean:  # a failure is diagnosed by running the full program again
+        result = RESULTS.where(stalled, RESULTS.nonfinite_equations,
+                               RESULTS.promote(solution.result))
+    else:
+        result, failure = _diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
+                                    stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
+        result = RESULTS.where(stalled, result, RESULTS.promote(solution.result))
     if nonfinite_input is not None:
         result = RESULTS.where(nonfinite_input, RESULTS.nonfinite_state_or_parameters, result)
         q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
     ts_out = solution.ts[0]
-    if throw:
+    if throw and not lean:
         condition = functools.partial(_condition, dynamics, p)
         ts_out = _raise_failures(ts_out, result, failure, (t0, q0, u0), t1,
                                  (t_last, q_last[0], u_last[0]), max_steps, condition,
@@ -510,6 +530,16 @@ def _host_condition(mass_matrix):
                 out[index] = eigenvalues[-1] / eigenvalues[0]
     return out
 
+
+# Runge–Kutta stages are written out (`UnrolledStages`) for equations of at most this many
+# scalar operations in straight-line code. Measured with Dopri8 (first simulate / run time,
+# written out against diffrax's stage loop): double pendulum (183 operations) 0.88 / 0.74 s,
+# 0.11 / 0.34 ms; articulated chain of 6 (1302) 4.3 / 2.0 s, 0.78 / 1.69 ms; chain of 6 rods
+# (1782) 4.0 / 1.4 s, 1.35 / 1.94 ms; articulated chain of 8 (1812) 18 / 3.1 s, 16.9 / 11.8 ms;
+# chain of 10 rods (3746) 41 / 5.3 s, 17.0 / 10.3 ms. Equations evaluated as arrays keep the
+# loop too (UR5 arm: 7.8 / 2.8 s, 10.8 / 5.0 ms): written out, a step's program is the
+# equations' times the stages, which XLA compiles slowly and runs from a cold cache.
+WRITTEN_OUT_STAGES_MAX = 1500
 
 # A mass matrix this ill-conditioned loses half the digits of the accelerations.
 _ILL_CONDITIONED = 1e8

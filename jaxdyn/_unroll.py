@@ -144,9 +144,10 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
     `args` are pytrees of arrays; the result has the structure of ``fn(*args)``.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    closed, out_struct = _traced(fn, leaves, treedef)
+    limit = MAX_ELEMENTS if max_elements is None else max_elements
     try:
-        outs = evaluate(closed, leaves, MAX_ELEMENTS if max_elements is None else max_elements)
+        closed, out_struct = _traced(fn, leaves, treedef, limit)
+        outs = evaluate(closed, leaves, limit)
     except _Fallback:
         return (fn if otherwise is None else otherwise)(*args)
     out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
@@ -154,26 +155,44 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
     return jax.tree_util.tree_unflatten(out_treedef, arrays)
 
 
-def fits(fn, *args, max_elements: int | None = None) -> bool:
-    """Whether `unrolled(fn, *args)` would evaluate ``fn`` as straight-line scalar code."""
+def straight_line_size(fn, *args, max_elements: int | None = None) -> int | None:
+    """The number of scalar operations `unrolled(fn, *args)` would emit, or None when it
+    would evaluate ``fn`` as written (too large for straight-line code)."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    closed, _ = _traced(fn, leaves, treedef)
     limit = MAX_ELEMENTS if max_elements is None else max_elements
     try:
-        evaluate(closed, leaves, limit, emit=False)
+        closed, _ = _traced(fn, leaves, treedef, limit)
+        return evaluate(closed, leaves, limit, emit=False)
     except _Fallback:
-        return False
-    return True
+        return None
 
 
-def _traced(fn, leaves, treedef):
+_ATTEMPT = contextvars.ContextVar("jaxdyn_unroll_attempt", default=None)
+
+
+def give_up_beyond(count: int):
+    """Inside the trace of an attempt at straight-line code (`unrolled`, `fits`): give up at
+    once if the program will emit at least `count` operations, more than the attempt allows,
+    rather than trace them (writing out an LDLᵀ factorisation of 50 speeds traces ~20 000
+    operations in Python, seconds, to find that they do not fit). Outside an attempt: nothing.
+    """
+    limit = _ATTEMPT.get()
+    if limit is not None and count > limit:
+        raise _Fallback
+
+
+def _traced(fn, leaves, treedef, limit):
     """(closed jaxpr, output shapes) of ``fn`` on the leaves' structure. A program that is one
     call of a jitted function is its callee: `fn` can then be a `jax.jit` (or
     `eqx.filter_jit`) whose trace JAX caches, so that several analyses of the same equations
     (does it fit, evaluate it) trace the user's functions once."""
-    closed, out_struct = jax.make_jaxpr(
-        lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)), return_shape=True
-    )(*leaves)
+    token = _ATTEMPT.set(limit)
+    try:
+        closed, out_struct = jax.make_jaxpr(
+            lambda *xs: fn(*jax.tree_util.tree_unflatten(treedef, xs)), return_shape=True
+        )(*leaves)
+    finally:
+        _ATTEMPT.reset(token)
     jaxpr = closed.jaxpr
     if len(jaxpr.eqns) == 1:
         sub = _inline_jaxpr(jaxpr.eqns[0])
@@ -184,20 +203,23 @@ def _traced(fn, leaves, treedef):
 
 
 def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = True):
-    """Evaluate a closed jaxpr element by element; returns object arrays of scalars.
+    """Evaluate a closed jaxpr element by element; returns object arrays of scalars, or with
+    `emit=False` only the number of operations it would emit.
 
-    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value (with
-    `emit=False`, a `Symbol`: only the count is wanted). Raises `_Fallback` when the program
+    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value. Raises `_Fallback` when the program
     has side effects, is too large to try, or emits more than `max_elements` operations.
     """
     jaxpr = _dead_code_eliminated(closed.jaxpr)
     if jaxpr.effects or _size(jaxpr) > max(MAX_TRIED, max_elements):
         raise _Fallback
-    budget = _BUDGET.set([max_elements])
+    remaining = [max_elements]
+    budget = _BUDGET.set(remaining)
     analysis = _ANALYSIS.set(True) if not emit else None
     try:
-        if not emit:
+        if not emit:  # only the count is wanted
             leaves = [_symbols_like(x, "input") for x in leaves]  # as if traced
+            _eval(jaxpr, closed.consts, [split(x) for x in leaves])
+            return max_elements - remaining[0]
         return _eval(jaxpr, closed.consts, [split(x) for x in leaves])
     finally:
         _BUDGET.reset(budget)

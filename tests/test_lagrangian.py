@@ -15,6 +15,7 @@ import sympy as sm
 import sympy.physics.mechanics as me
 
 import jaxdyn
+from jaxdyn._dynamics import straight_line_size
 
 from helpers import (
     BEAD_ON_HOOP,
@@ -371,10 +372,15 @@ def _chain_reference(q, qd, p):
     return np.linalg.solve(p["A"], -grad_V)
 
 
-def test_chain_of_six_oscillators():
-    p = _chain_params()
+@pytest.mark.parametrize("n", [6, 40])
+def test_chains_of_nonlinear_oscillators(n):
+    """Six coordinates run as straight-line code; forty as arrays, the straight-line attempt
+    abandoned before its LDLᵀ factorisation (~40³/6 operations) is traced."""
+    p = _chain_params(n)
+    assert (straight_line_size(CHAIN, jnp.asarray(0.0), jnp.zeros(n), jnp.zeros(n), p)
+            is None) == (n == 40)
     rng = np.random.default_rng(32)
-    qs, qds = rng.normal(size=(NUM_STATES, 6)), rng.normal(size=(NUM_STATES, 6))
+    qs, qds = rng.normal(size=(NUM_STATES, n)), rng.normal(size=(NUM_STATES, n))
 
     @jax.jit
     def evaluate(q, qd, p):
