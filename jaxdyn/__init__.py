@@ -49,7 +49,12 @@ from ._form.newton_euler import (
     inverse_dynamics_regressor as inverse_dynamics_regressor,
 )
 from ._fit.experiment import Experiment as Experiment, MultipleShooting as MultipleShooting
-from ._fit.fit import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning, fit as fit
+from ._fit.fit import (
+    FitResult as FitResult,
+    IdentifiabilityWarning as IdentifiabilityWarning,
+    LackOfFitWarning as LackOfFitWarning,
+    fit as fit,
+)
 from ._fit.torques import (
     InertialFit as InertialFit,
     fit_inertial_parameters as fit_inertial_parameters,

@@ -88,6 +88,75 @@ def test_oscillator_stiffness_and_damping_from_noisy_data(oscillator_fit):
     np.testing.assert_allclose(np.diag(correlation), 1.0, rtol=1e-12)
     assert result.loss_history[-1] <= result.loss_history[0]
     assert result.predictions[0].shape == (201, 1)
+    # The noise estimated from the data alone (weighted: σ = 1) and the residuals agree.
+    assert result.explains_data
+    assert 0.8 < result.noise_variance < 1.2
+    assert 0.8 < result.residual_variance / result.noise_variance < 1.25
+    assert "explained by the model" in result.summary()
+
+
+def test_a_model_missing_its_damping_reports_that_it_does_not_explain_the_data():
+    """Data of the damped oscillator fitted with an undamped model: the optimiser converges,
+    to the best undamped motion, and the fit says that its residuals are not noise."""
+    undamped = jaxdyn.Lagrangian(kinetic=_oscillator_T, potential=_oscillator_V)
+    with pytest.warns(jaxdyn.LackOfFitWarning, match="does not explain the data"):
+        result = jaxdyn.fit(undamped, oscillator_experiment(), {"m": 1.0, "k": 3.0},
+                            filter_spec={"m": False, "k": True})
+    assert result.converged and result.explains_data is False
+    assert result.residual_variance > 10 * result.noise_variance
+    assert 0.8 < result.noise_variance < 1.2  # the noise estimate does not see the model
+    assert "NOT explained" in result.summary()
+
+
+ELASTIC_TRUTH = {"m": 0.9, "g": G, "k": 35.0, "l0": 1.1}
+
+
+def _elastic_T(q, qd, p):
+    r, _ = q
+    return 0.5 * p["m"] * (qd[0] ** 2 + r**2 * qd[1] ** 2)
+
+
+def _elastic_V(q, p):
+    r, theta = q
+    return -p["m"] * p["g"] * r * jnp.cos(theta) + 0.5 * p["k"] * (r - p["l0"]) ** 2
+
+
+def elastic_experiments(sigma=1e-3):
+    """Two experiments of 4 s of the elastic pendulum (polar coordinates r, θ from the
+    downward vertical), only the bob's horizontal position r sin θ observed, from SciPy."""
+    m, g, k, l0 = (ELASTIC_TRUTH[key] for key in ("m", "g", "k", "l0"))
+
+    def rhs(t, y):
+        r, theta, r_dot, theta_dot = y
+        return [r_dot, theta_dot, r * theta_dot**2 + g * np.cos(theta) - k / m * (r - l0),
+                -(2 * r_dot * theta_dot + g * np.sin(theta)) / r]
+
+    rng = np.random.default_rng(5)
+    experiments = []
+    for q0 in ([1.3, 0.5], [1.0, -0.8]):
+        ts = np.linspace(0.0, 4.0, 201)
+        y = solve_ivp(rhs, (0.0, 4.0), [*q0, 0.0, 0.0], t_eval=ts, rtol=1e-12, atol=1e-12,
+                      method="DOP853").y
+        x = y[0] * np.sin(y[1]) + sigma * rng.standard_normal(ts.size)
+        experiments.append(jaxdyn.Experiment(ts, x[:, None], q0=q0, u0=[0.0, 0.0]))
+    return experiments
+
+
+def test_a_fit_stopped_in_a_local_minimum_says_so():
+    """The elastic pendulum from k 2× and l₀ 0.8× the truth, initial states fitted too: the
+    optimiser meets its tolerance in a local minimum (k ≈ 74, l₀ ≈ 1.5). The fit reports that the residuals are
+    far above the noise estimated from the data (unweighted), and warns."""
+    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
+    trained = {"m": False, "g": False, "k": True, "l0": True}
+    with pytest.warns(jaxdyn.LackOfFitWarning, match="local minimum"):
+        trapped = jaxdyn.fit(jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments(),
+                             guess, filter_spec=trained, observe=observe,
+                             fit_initial_states=True, uncertainty=False)
+    assert trapped.converged and trapped.explains_data is False
+    assert abs(float(trapped.params["k"]) - ELASTIC_TRUTH["k"]) > 1.0  # not at the truth
+    # σ = 1e-3 estimated from the data alone, to 20 %.
+    assert 0.8e-3 < np.sqrt(trapped.noise_variance) < 1.2e-3
 
 
 def test_standard_errors_match_the_spread_over_noise_realisations(oscillator_fit):

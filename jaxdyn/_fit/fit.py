@@ -24,6 +24,7 @@ import tqdm
 from .._dynamics import AbstractDynamics
 from .._errors import _where
 from .._state import numbers_as_arrays
+from .adequacy import adequacy
 from .experiment import Experiment, MultipleShooting
 from .parametrisation import leaf_parametrisations
 from .residuals import (
@@ -43,6 +44,12 @@ SIMULATE_OPTIONS = {"solver": diffrax.Tsit5(), "rtol": 1e-8, "atol": 1e-8}
 FLOAT32_SIMULATE_TOLERANCE = 1e-6
 
 
+class LackOfFitWarning(UserWarning):
+    """Issued by `jaxdyn.fit` when the fitted model does not explain the data: its residuals
+    stay far above the noise estimated from the data (a local minimum, or a term missing
+    from the model), or multiple-shooting segments were left apart."""
+
+
 class IdentifiabilityWarning(UserWarning):
     """The data cannot identify some parameters (`FitResult.uncertainty.unidentifiable`)."""
 
@@ -58,7 +65,15 @@ class FitResult(eqx.Module):
     - `loss_history`: that loss at the iterate of every step.
     - `predictions`: per experiment, the fitted model's observations at the data's times.
     - `converged`: whether the optimiser's tolerance was met (else `max_steps` ran out or the
-      callback stopped the fit).
+      callback stopped the fit). It does not say that the optimum was found: see
+      `explains_data`.
+    - `explains_data`: whether the residuals are at the level of the noise in the data (σ² at
+      most 4 σ̂²) and multiple-shooting segments join; False means a local minimum or a
+      model that lacks a term, and `fit` warns (`jaxdyn.LackOfFitWarning`). None where the
+      records are too short to estimate the noise.
+    - `residual_variance`: σ² = Σ w (y − ŷ)² / (N − P), the weighted residual variance.
+    - `noise_variance`: σ̂², the weighted noise variance estimated from the data alone by
+      differences along each record (Rice 1984), whatever the weights.
     - `num_steps`, `num_accepted_steps` (least-squares solvers: steps that lowered the loss),
       `wall_time` (seconds, compilation included).
     - `uncertainty`: a `jaxdyn.Uncertainty` (standard errors, correlations, identifiability),
@@ -73,6 +88,9 @@ class FitResult(eqx.Module):
     loss_history: np.ndarray
     predictions: tuple
     converged: bool
+    explains_data: bool | None
+    residual_variance: float
+    noise_variance: float
     num_steps: int
     num_accepted_steps: int | None
     wall_time: float
@@ -103,6 +121,12 @@ class FitResult(eqx.Module):
         lines = [f"loss {self.loss:.6g} after {self.num_steps} steps "
                  f"({'converged' if self.converged else 'not converged'}, "
                  f"{self.wall_time:.1f} s)"]
+        if self.explains_data is not None:
+            verdict = ("explained by the model" if self.explains_data else
+                       "NOT explained by the model (a local minimum, or a term missing)")
+            lines.append(f"residual RMS {np.sqrt(self.residual_variance):.3g} against noise "
+                         f"{np.sqrt(self.noise_variance):.3g} estimated from the data "
+                         f"(weighted): data {verdict}")
         if self.uncertainty is None:
             return "\n".join(lines)
         intervals = self.confidence_intervals()
@@ -405,9 +429,9 @@ def _simulated_states(problem, group, p, q0, u0, at):
 
 @eqx.filter_jit
 def _evaluate(problem, latent):
-    """(per group the predicted observations, ½‖r_obs‖²)."""
-    predictions, _, observation = problem.evaluate(latent)
-    return predictions, 0.5 * jnp.sum(observation**2)
+    """(per group the predicted observations, ½‖r_obs‖², r, r_obs)."""
+    predictions, residuals, observation = problem.evaluate(latent)
+    return predictions, 0.5 * jnp.sum(observation**2), residuals, observation
 
 
 def _in_precision(state, latent):
@@ -507,16 +531,28 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
     states = problem.initial_states(latent)
     initial_states, predictions = {}, {}
     if uncertainty:
-        report, predicted_groups, loss = analyse(problem, latent, tolerance, state)
+        report, predicted_groups, loss, (r_all, r_obs) = analyse(problem, latent, tolerance,
+                                                                 state)
     else:
         report = None
-        predicted_groups, loss = _evaluate(problem, latent)
+        predicted_groups, loss, r_all, r_obs = _evaluate(problem, latent)
     for group, (q0, u0), predicted in zip(problem.groups, states, predicted_groups):
         for k, i in enumerate(group.indices):
             initial_states[i] = (q0[k], u0[k])
             predictions[i] = predicted[k]
     if report is not None and report.unidentifiable:
         warnings.warn("\n".join(report.unidentifiable), IdentifiabilityWarning, stacklevel=3)
+    r_obs = np.asarray(r_obs)
+    r_continuity = np.asarray(r_all)[r_obs.size:]
+    residual, noise, explains, closed = adequacy(
+        problem.groups, r_obs, r_continuity,
+        flatten_latent(latent)[0].size - r_continuity.size,
+        float(problem.simulate_options.get("rtol", np.finfo(r_obs.dtype).eps ** 0.5)))
+    # Only where the optimiser claims the optimum: a fit cut short (max_steps, the callback)
+    # is reported as such already.
+    if converged and (explains is False or closed is False):
+        warnings.warn(_lack_of_fit_message(residual, noise, explains, closed, r_continuity),
+                      LackOfFitWarning, stacklevel=3)
     accepted = getattr(state, "num_accepted_steps", None)
     return FitResult(
         params=params,
@@ -524,8 +560,29 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
         loss=float(loss),
         loss_history=np.asarray(history),
         predictions=tuple(predictions[i] for i in range(len(predictions))),
-        converged=bool(converged), num_steps=iteration,
+        converged=bool(converged),
+        explains_data=None if explains is None else bool(explains and closed),
+        residual_variance=residual, noise_variance=noise, num_steps=iteration,
         num_accepted_steps=None if accepted is None else int(accepted),
         wall_time=time.perf_counter() - start_time, uncertainty=report, problem=problem,
         latent=latent)
 
+
+
+def _lack_of_fit_message(residual, noise, explains, closed, r_continuity):
+    lines = []
+    if not explains:
+        lines.append(
+            f"The fitted model does not explain the data: its residual variance is "
+            f"{residual / noise:.3g} times the noise variance estimated from the data "
+            f"(residual RMS {np.sqrt(residual):.3g} against noise {np.sqrt(noise):.3g}, "
+            "weighted), although the optimiser stopped. Either the fit stopped in a local "
+            "minimum (trajectories of oscillations have many: start from other values, fit "
+            "a shorter horizon first, or use jaxdyn.MultipleShooting) or the model lacks a "
+            "term (damping, friction, an input).")
+    if not closed:
+        lines.append(
+            f"The multiple-shooting segments do not join (continuity residuals of RMS "
+            f"{np.sqrt(np.mean(r_continuity**2)):.3g}): the fitted trajectory is not one "
+            "solution of the equations. Raise max_steps, or the continuity_weight.")
+    return "\n".join(lines)

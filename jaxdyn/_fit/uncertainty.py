@@ -138,7 +138,7 @@ def _solver_linearisation(state, z):
 
 def analyse(problem: TrajectoryMatching, z, tolerance: float, state=None):
     """(the Gauss–Newton `Uncertainty` of the fit at z (forward-mode Jacobian), per group the
-    predicted observations, ½‖r_obs‖²): one compiled evaluation, reusing the Jacobian of the
+    predicted observations, ½‖r_obs‖², the residuals (r, r_obs)): one compiled evaluation, reusing the Jacobian of the
     least-squares solver's last step when `state` (its final state) holds one."""
     linearised = None if state is None else _solver_linearisation(state, z)
     if linearised is None:
@@ -208,7 +208,7 @@ def analyse(problem: TrajectoryMatching, z, tolerance: float, state=None):
                          correlation=correlation, residual_variance=variance,
                          degrees_of_freedom=dof, singular_values=relative,
                          unidentifiable=tuple(unidentifiable))
-    return report, predictions, 0.5 * float(np.sum(r_obs**2))
+    return report, predictions, 0.5 * float(np.sum(r_obs**2)), (r_all, r_obs)
 
 
 def parameter_names(problem, z):
