@@ -48,7 +48,11 @@ from ._form.newton_euler import (
     inertial_parameters as inertial_parameters,
     inverse_dynamics_regressor as inverse_dynamics_regressor,
 )
-from ._fit.experiment import Experiment as Experiment, MultipleShooting as MultipleShooting
+from ._fit.experiment import (
+    Experiment as Experiment,
+    HorizonContinuation as HorizonContinuation,
+    MultipleShooting as MultipleShooting,
+)
 from ._fit.fit import (
     FitResult as FitResult,
     IdentifiabilityWarning as IdentifiabilityWarning,

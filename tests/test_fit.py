@@ -142,21 +142,44 @@ def elastic_experiments(sigma=1e-3):
     return experiments
 
 
-def test_a_fit_stopped_in_a_local_minimum_says_so():
-    """The elastic pendulum from k 2× and l₀ 0.8× the truth, initial states fitted too: the
-    optimiser meets its tolerance in a local minimum (k ≈ 74, l₀ ≈ 1.5). The fit reports that the residuals are
-    far above the noise estimated from the data (unweighted), and warns."""
+def test_a_fit_stopped_in_a_local_minimum_says_so_and_continuation_finds_the_truth():
+    """The elastic pendulum from k 2× and l₀ 0.8× the truth, initial states fitted too.
+    Fitted directly (`globalisation=False`), the optimiser meets its tolerance in a local
+    minimum (k ≈ 74, l₀ ≈ 1.5); the fit reports that the residuals are far above the noise
+    estimated from the data (unweighted), and warns. By default the trapped fit is taken up
+    again by horizon continuation, which ends at the truth (k, l₀ to the noise's accuracy)."""
     observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
     guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
     trained = {"m": False, "g": False, "k": True, "l0": True}
+    system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
+    options = dict(filter_spec=trained, observe=observe, fit_initial_states=True,
+                   uncertainty=False)
     with pytest.warns(jaxdyn.LackOfFitWarning, match="local minimum"):
-        trapped = jaxdyn.fit(jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments(),
-                             guess, filter_spec=trained, observe=observe,
-                             fit_initial_states=True, uncertainty=False)
+        trapped = jaxdyn.fit(system, experiments, guess, globalisation=False, **options)
     assert trapped.converged and trapped.explains_data is False
+    assert trapped.strategy == "direct"
     assert abs(float(trapped.params["k"]) - ELASTIC_TRUTH["k"]) > 1.0  # not at the truth
     # σ = 1e-3 estimated from the data alone, to 20 %.
     assert 0.8e-3 < np.sqrt(trapped.noise_variance) < 1.2e-3
+
+    found = jaxdyn.fit(system, experiments, guess, **options)  # no warning: data explained
+    assert found.strategy == "horizon continuation" and found.explains_data
+    np.testing.assert_allclose(float(found.params["k"]), ELASTIC_TRUTH["k"], rtol=2e-3)
+    np.testing.assert_allclose(float(found.params["l0"]), ELASTIC_TRUTH["l0"], rtol=2e-3)
+    assert found.loss < 1e-3 * trapped.loss
+
+
+def test_horizon_continuation_checks_its_fractions():
+    with pytest.raises(ValueError, match="increasing numbers between 0 and 1"):
+        jaxdyn.HorizonContinuation(fractions=(0.5, 0.25))
+    with pytest.raises(ValueError, match="increasing numbers between 0 and 1"):
+        jaxdyn.HorizonContinuation(fractions=(0.5, 1.0))
+    experiment = oscillator_experiment()
+    part = jaxdyn.HorizonContinuation(min_samples=16).truncated(experiment, 0.125)
+    assert part.ts.shape == (26,) and part.observations.shape == (26, 1)
+    assert jaxdyn.HorizonContinuation().truncated(experiment, 0.01).ts.shape == (16,)
+    with pytest.raises(ValueError, match="globalisation must be None, False or"):
+        jaxdyn.fit(OSCILLATOR, experiment, OSCILLATOR_GUESS, globalisation="multi-start")
 
 
 def test_standard_errors_match_the_spread_over_noise_realisations(oscillator_fit):

@@ -1,5 +1,7 @@
-"""Measured data: experiments, and how a long horizon is cut into shooting segments."""
+"""Measured data: experiments, and how a long horizon is cut: into shooting segments, or into
+the growing horizons of a continuation."""
 
+import math
 from typing import Any, Callable
 
 import equinox as eqx
@@ -92,3 +94,39 @@ class MultipleShooting(eqx.Module):
     def __check_init__(self):
         if not isinstance(self.segments, int) or self.segments < 1:
             raise ValueError(f"segments must be a positive integer, got {self.segments!r}.")
+
+
+class HorizonContinuation(eqx.Module):
+    """Fit the first part of every record, then longer parts, each from the optimum of the
+    last, and the whole records last.
+
+    A trajectory over many periods depends on a frequency so sensitively that the loss has a
+    local minimum wherever the simulated and measured oscillations are a whole number of
+    periods apart; over the first period or two it has one basin, whose optimum is close to
+    the global one of the longer horizon (Bock 1983; Voss, Timmer and Kurths 2004). Each stage
+    lengthens the horizon while the fit stays in that basin.
+
+    **Arguments:**
+
+    - `fractions`: the parts of each record fitted before the whole, increasing (default: an
+      eighth, a quarter, a half).
+    - `min_samples`: the fewest samples a stage fits (records shorter than this are fitted
+      whole at every stage).
+    """
+
+    fractions: tuple[float, ...] = eqx.field(default=(0.125, 0.25, 0.5), static=True)
+    min_samples: int = eqx.field(default=16, static=True)
+
+    def __check_init__(self):
+        if (not self.fractions or any(not 0 < f < 1 for f in self.fractions)
+                or list(self.fractions) != sorted(self.fractions)):
+            raise ValueError("fractions must be increasing numbers between 0 and 1, got "
+                             f"{self.fractions!r}.")
+
+    def truncated(self, experiment: Experiment, fraction: float) -> Experiment:
+        """The first `fraction` of the record (at least `min_samples` samples)."""
+        count = experiment.ts.shape[0]
+        keep = min(count, max(self.min_samples, math.ceil(fraction * (count - 1)) + 1))
+        weights = None if experiment.weights is None else experiment.weights[:keep]
+        return Experiment(experiment.ts[:keep], experiment.observations[:keep], experiment.q0,
+                          experiment.u0, experiment.inputs, weights)

@@ -25,7 +25,7 @@ from .._dynamics import AbstractDynamics
 from .._errors import _where
 from .._state import numbers_as_arrays
 from .adequacy import adequacy
-from .experiment import Experiment, MultipleShooting
+from .experiment import Experiment, HorizonContinuation, MultipleShooting
 from .parametrisation import leaf_parametrisations
 from .residuals import (
     TrajectoryMatching,
@@ -71,6 +71,8 @@ class FitResult(eqx.Module):
       most 4 σ̂²) and multiple-shooting segments join; False means a local minimum or a
       model that lacks a term, and `fit` warns (`jaxdyn.LackOfFitWarning`). None where the
       records are too short to estimate the noise.
+    - `lack_of_fit`: why the data are not explained (the message of the warning), or None.
+    - `strategy`: "direct", or "horizon continuation" (`jaxdyn.HorizonContinuation`).
     - `residual_variance`: σ² = Σ w (y − ŷ)² / (N − P), the weighted residual variance.
     - `noise_variance`: σ̂², the weighted noise variance estimated from the data alone by
       differences along each record (Rice 1984), whatever the weights.
@@ -89,6 +91,8 @@ class FitResult(eqx.Module):
     predictions: tuple
     converged: bool
     explains_data: bool | None
+    lack_of_fit: str | None
+    strategy: str
     residual_variance: float
     noise_variance: float
     num_steps: int
@@ -174,6 +178,7 @@ def fit(
     callback: Callable | None = None,
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: int = 1,
+    globalisation: HorizonContinuation | bool | None = None,
 ) -> FitResult:
     """Fit parameters of `dynamics` to measured trajectories by trajectory matching:
     minimise ½ Σᵢⱼ wᵢⱼ ‖yᵢⱼ − h(tᵢⱼ, q(tᵢⱼ), u(tᵢⱼ), p)‖² over the parameters p (and, if
@@ -229,11 +234,69 @@ def fit(
     - `checkpoint`: a file path. The optimiser's whole state is saved there (equinox
       serialisation) every `checkpoint_every` steps; a fit started with an existing file
       resumes from it and ends at the same parameters as an uninterrupted fit.
+    - `globalisation`: how a fit escapes local minima. None (default): fit directly, and if
+      the optimiser converges where the model does not explain the data (`explains_data`
+      False), fit again by `jaxdyn.HorizonContinuation()` from the initial guess and keep the
+      lower loss. A `jaxdyn.HorizonContinuation`: fit by it from the start. False: fit
+      directly only.
 
-    **Returns:** a `jaxdyn.FitResult`.
+    **Returns:** a `jaxdyn.FitResult`; a converged fit that still does not explain its data
+    warns (`jaxdyn.LackOfFitWarning`).
     """
     start_time = time.perf_counter()
     experiments = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    if not (globalisation is None or isinstance(globalisation, (bool, HorizonContinuation))):
+        raise ValueError("globalisation must be None, False or a jaxdyn.HorizonContinuation, "
+                         f"got {type(globalisation).__name__}.")
+    options = dict(filter_spec=filter_spec, parametrisation=parametrisation, observe=observe,
+                   fit_initial_states=fit_initial_states, shooting=shooting,
+                   optimiser=optimiser, max_steps=max_steps, rtol=rtol, atol=atol,
+                   adjoint=adjoint, simulate_options=simulate_options, uncertainty=uncertainty,
+                   identifiability_tolerance=identifiability_tolerance, progress=progress,
+                   callback=callback, checkpoint=checkpoint,
+                   checkpoint_every=checkpoint_every)
+    if isinstance(globalisation, HorizonContinuation):
+        result = _by_continuation(globalisation, dynamics, experiments, params, options)
+    else:
+        result = _fit_directly(dynamics, experiments, params, **options)
+        if (globalisation is None and result.converged and result.explains_data is False
+                and not checkpoint):
+            retried = _by_continuation(HorizonContinuation(), dynamics, experiments, params,
+                                       options)
+            if retried.loss < result.loss:
+                result = retried
+    result = eqx.tree_at(lambda r: r.wall_time, result, time.perf_counter() - start_time)
+    if result.converged and result.lack_of_fit is not None:
+        warnings.warn(result.lack_of_fit, LackOfFitWarning, stacklevel=2)
+    return result
+
+
+def _by_continuation(continuation, dynamics, experiments, params, options):
+    """`continuation`'s stages, then the whole records, each from the last optimum (and,
+    with fitted initial states, from its initial states)."""
+    stage_options = {**options, "uncertainty": False, "callback": None, "checkpoint": None,
+                     "shooting": None}
+    guess = params
+    for fraction in continuation.fractions:
+        stage = [continuation.truncated(e, fraction) for e in experiments]
+        with warnings.catch_warnings():  # a stage is a starting point, converged or not
+            warnings.simplefilter("ignore", RuntimeWarning)
+            result = _fit_directly(dynamics, stage, guess, **stage_options)
+        guess = result.params
+        if options["fit_initial_states"]:
+            experiments = [Experiment(e.ts, e.observations, np.asarray(q0), np.asarray(u0),
+                                      e.inputs, e.weights)
+                           for e, (q0, u0) in zip(experiments, result.initial_states)]
+    result = _fit_directly(dynamics, experiments, guess, **options)
+    return eqx.tree_at(lambda r: r.strategy, result, "horizon continuation")
+
+
+def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation, observe,
+                  fit_initial_states, shooting, optimiser, max_steps, rtol, atol, adjoint,
+                  simulate_options, uncertainty, identifiability_tolerance, progress,
+                  callback, checkpoint, checkpoint_every):
+    """One fit from `params` (`fit` without globalisation)."""
+    start_time = time.perf_counter()
     if not experiments or not all(isinstance(e, Experiment) for e in experiments):
         raise ValueError("experiments must be a jaxdyn.Experiment or a non-empty sequence of "
                          "them.")
@@ -308,7 +371,7 @@ def fit(
         last = history[-1] if history else float("nan")
         warnings.warn(f"The fit did not converge in max_steps = {max_steps} steps (loss "
                       f"{last:.6g}); raise max_steps or start closer.", RuntimeWarning,
-                      stacklevel=2)
+                      stacklevel=3)
     return _result(problem, latent, state, history, done, iteration, uncertainty,
                    identifiability_tolerance, start_time)
 
@@ -541,18 +604,16 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
             initial_states[i] = (q0[k], u0[k])
             predictions[i] = predicted[k]
     if report is not None and report.unidentifiable:
-        warnings.warn("\n".join(report.unidentifiable), IdentifiabilityWarning, stacklevel=3)
+        warnings.warn("\n".join(report.unidentifiable), IdentifiabilityWarning, stacklevel=4)
     r_obs = np.asarray(r_obs)
     r_continuity = np.asarray(r_all)[r_obs.size:]
     residual, noise, explains, closed = adequacy(
         problem.groups, r_obs, r_continuity,
         flatten_latent(latent)[0].size - r_continuity.size,
         float(problem.simulate_options.get("rtol", np.finfo(r_obs.dtype).eps ** 0.5)))
-    # Only where the optimiser claims the optimum: a fit cut short (max_steps, the callback)
-    # is reported as such already.
-    if converged and (explains is False or closed is False):
-        warnings.warn(_lack_of_fit_message(residual, noise, explains, closed, r_continuity),
-                      LackOfFitWarning, stacklevel=3)
+    lack_of_fit = None
+    if explains is False or closed is False:
+        lack_of_fit = _lack_of_fit_message(residual, noise, explains, closed, r_continuity)
     accepted = getattr(state, "num_accepted_steps", None)
     return FitResult(
         params=params,
@@ -562,6 +623,7 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
         predictions=tuple(predictions[i] for i in range(len(predictions))),
         converged=bool(converged),
         explains_data=None if explains is None else bool(explains and closed),
+        lack_of_fit=lack_of_fit, strategy="direct",
         residual_variance=residual, noise_variance=noise, num_steps=iteration,
         num_accepted_steps=None if accepted is None else int(accepted),
         wall_time=time.perf_counter() - start_time, uncertainty=report, problem=problem,
@@ -578,8 +640,8 @@ def _lack_of_fit_message(residual, noise, explains, closed, r_continuity):
             f"(residual RMS {np.sqrt(residual):.3g} against noise {np.sqrt(noise):.3g}, "
             "weighted), although the optimiser stopped. Either the fit stopped in a local "
             "minimum (trajectories of oscillations have many: start from other values, fit "
-            "a shorter horizon first, or use jaxdyn.MultipleShooting) or the model lacks a "
-            "term (damping, friction, an input).")
+            "by jaxdyn.HorizonContinuation, or use jaxdyn.MultipleShooting) or the model "
+            "lacks a term (damping, friction, an input).")
     if not closed:
         lines.append(
             f"The multiple-shooting segments do not join (continuity residuals of RMS "
