@@ -235,9 +235,9 @@ def fit(
       serialisation) every `checkpoint_every` steps; a fit started with an existing file
       resumes from it and ends at the same parameters as an uninterrupted fit.
     - `globalisation`: how a fit escapes local minima. None (default): fit directly, and if
-      the optimiser converges where the model does not explain the data (`explains_data`
-      False), fit again by `jaxdyn.HorizonContinuation()` from the initial guess and keep the
-      lower loss. A `jaxdyn.HorizonContinuation`: fit by it from the start. False: fit
+      the optimiser converges (or runs out of steps) where the model does not explain the
+      data (`explains_data` False), fit again by `jaxdyn.HorizonContinuation()` from the
+      initial guess and keep the lower loss. A `jaxdyn.HorizonContinuation`: fit by it from the start. False: fit
       directly only.
 
     **Returns:** a `jaxdyn.FitResult`; a converged fit that still does not explain its data
@@ -259,8 +259,11 @@ def fit(
         result = _by_continuation(globalisation, dynamics, experiments, params, options)
     else:
         result = _fit_directly(dynamics, experiments, params, **options)
-        if (globalisation is None and result.converged and result.explains_data is False
-                and not checkpoint):
+        # Trapped: converged where the data are not explained, or ran out of steps crawling
+        # (not stopped by the callback, whose decision stands).
+        trapped = result.explains_data is False and (result.converged
+                                                     or result.num_steps >= max_steps)
+        if globalisation is None and trapped and not checkpoint:
             retried = _by_continuation(HorizonContinuation(), dynamics, experiments, params,
                                        options)
             if retried.loss < result.loss:
