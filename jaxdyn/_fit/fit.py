@@ -300,33 +300,10 @@ def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation
                   callback, checkpoint, checkpoint_every):
     """One fit from `params` (`fit` without globalisation)."""
     start_time = time.perf_counter()
-    if not experiments or not all(isinstance(e, Experiment) for e in experiments):
-        raise ValueError("experiments must be a jaxdyn.Experiment or a non-empty sequence of "
-                         "them.")
-    if not isinstance(dynamics, AbstractDynamics):
-        raise ValueError(f"dynamics must be a jaxdyn.AbstractDynamics, got "
-                         f"{type(dynamics).__name__}.")
-    shooting = MultipleShooting(1) if shooting is None else shooting
-    for i, e in enumerate(experiments):
-        if (e.ts.shape[0] - 1) % shooting.segments:
-            raise ValueError(f"Experiment {i} has {e.ts.shape[0]} samples: len(ts) − 1 = "
-                             f"{e.ts.shape[0] - 1} must be divisible by the "
-                             f"{shooting.segments} shooting segments.")
-    least_squares, solver = _solver(optimiser, rtol, atol)
-    dtype = fit_dtype(params)
-    if identifiability_tolerance is None:
-        identifiability_tolerance = 1e-7 if jnp.finfo(dtype).bits == 64 else 1e-4
-    if adjoint is None:
-        adjoint = (diffrax.ForwardMode() if least_squares
-                   else diffrax.RecursiveCheckpointAdjoint())
-    options = {"jac": "fwd" if isinstance(adjoint, diffrax.ForwardMode) else "bwd"}
-    problem, latent = _problem(dynamics, experiments, params, dtype, filter_spec,
-                               parametrisation, observe, fit_initial_states, shooting,
-                               simulate_options, adjoint)
-    fn = scalar_loss
-    if least_squares:
-        fn = (least_squares_residuals_forward if options["jac"] == "fwd"
-              else least_squares_residuals)
+    problem, latent, solver, fn, options, identifiability_tolerance = _setup(
+        dynamics, experiments, params, filter_spec, parametrisation, observe,
+        fit_initial_states, shooting, optimiser, rtol, atol, adjoint, simulate_options,
+        identifiability_tolerance)
     state = _init(solver, fn, latent, problem, options)
     iteration, history = 0, []
     step = _compiled_step(solver, fn)
@@ -354,9 +331,7 @@ def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation
             iteration += 1
             loss = float(loss)
             if iteration == 1 and not np.isfinite(loss):  # the loss at the initial guess
-                raise ValueError("The simulations at the initial parameters fail (the loss is "
-                                 "not finite): check the initial guess and states, e.g. with "
-                                 "jaxdyn.simulate.")
+                raise ValueError(INITIAL_FAILURE)
             if not finite:
                 raise FloatingPointError(_nonfinite_message(problem, previous, iteration))
             history.append(loss)
@@ -371,12 +346,55 @@ def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation
     finally:
         bar.close()
     if not done and not stopped:
-        last = history[-1] if history else float("nan")
-        warnings.warn(f"The fit did not converge in max_steps = {max_steps} steps (loss "
-                      f"{last:.6g}); raise max_steps or start closer.", RuntimeWarning,
-                      stacklevel=3)
+        _warn_unconverged(max_steps, history)
     return _result(problem, latent, state, history, done, iteration, uncertainty,
                    identifiability_tolerance, start_time)
+
+
+INITIAL_FAILURE = ("The simulations at the initial parameters fail (the loss is not finite): "
+                   "check the initial guess and states, e.g. with jaxdyn.simulate.")
+
+
+def _warn_unconverged(max_steps, history):
+    last = history[-1] if history else float("nan")
+    warnings.warn(f"The fit did not converge in max_steps = {max_steps} steps (loss "
+                  f"{last:.6g}); raise max_steps or start closer.", RuntimeWarning,
+                  stacklevel=4)
+
+
+def _setup(dynamics, experiments, params, filter_spec, parametrisation, observe,
+           fit_initial_states, shooting, optimiser, rtol, atol, adjoint, simulate_options,
+           identifiability_tolerance):
+    """(the problem, the latent starting point, the optimistix solver, the function it
+    minimises, its options, the identifiability tolerance), after checking the arguments."""
+    if not experiments or not all(isinstance(e, Experiment) for e in experiments):
+        raise ValueError("experiments must be a jaxdyn.Experiment or a non-empty sequence of "
+                         "them.")
+    if not isinstance(dynamics, AbstractDynamics):
+        raise ValueError(f"dynamics must be a jaxdyn.AbstractDynamics, got "
+                         f"{type(dynamics).__name__}.")
+    shooting = MultipleShooting(1) if shooting is None else shooting
+    for i, e in enumerate(experiments):
+        if (e.ts.shape[0] - 1) % shooting.segments:
+            raise ValueError(f"Experiment {i} has {e.ts.shape[0]} samples: len(ts) − 1 = "
+                             f"{e.ts.shape[0] - 1} must be divisible by the "
+                             f"{shooting.segments} shooting segments.")
+    least_squares, solver = _solver(optimiser, rtol, atol)
+    dtype = fit_dtype(params)
+    if identifiability_tolerance is None:
+        identifiability_tolerance = 1e-7 if jnp.finfo(dtype).bits == 64 else 1e-4
+    if adjoint is None:
+        adjoint = (diffrax.ForwardMode() if least_squares
+                   else diffrax.RecursiveCheckpointAdjoint())
+    options = {"jac": "fwd" if isinstance(adjoint, diffrax.ForwardMode) else "bwd"}
+    problem, latent = _problem(dynamics, experiments, params, dtype, filter_spec,
+                               parametrisation, observe, fit_initial_states, shooting,
+                               simulate_options, adjoint)
+    fn = scalar_loss
+    if least_squares:
+        fn = (least_squares_residuals_forward if options["jac"] == "fwd"
+              else least_squares_residuals)
+    return problem, latent, solver, fn, options, identifiability_tolerance
 
 
 def _solver(optimiser, rtol, atol):
