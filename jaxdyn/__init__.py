@@ -53,6 +53,7 @@ from ._fit.experiment import (
     HorizonContinuation as HorizonContinuation,
     MultipleShooting as MultipleShooting,
 )
+from ._fit.starts import MultiStart as MultiStart
 from ._fit.fit import (
     FitResult as FitResult,
     IdentifiabilityWarning as IdentifiabilityWarning,

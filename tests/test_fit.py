@@ -169,6 +169,35 @@ def test_a_fit_stopped_in_a_local_minimum_says_so_and_continuation_finds_the_tru
     assert found.loss < 1e-3 * trapped.loss
 
 
+def test_multi_start_equals_the_best_of_the_separate_fits():
+    """Six starting points around the trapped guess of the elastic pendulum, fitted at once
+    (one vmapped computation, `jaxdyn.MultiStart`) and one by one: the multi-start result is
+    the best separate fit (the one that reaches the truth), to round-off."""
+    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
+    trained = {"m": False, "g": False, "k": True, "l0": True}
+    system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
+    options = dict(filter_spec=trained, observe=observe, fit_initial_states=True,
+                   uncertainty=False, max_steps=60)
+    starts = jaxdyn.MultiStart(6, spread=3.0, seed=1)
+    points = starts.starting_points(guess, trained)
+    assert len(points) == 6 and points[0] == guess
+    with warnings.catch_warnings():  # the separate fits that end trapped or crawl warn
+        warnings.simplefilter("ignore")
+        separate = [jaxdyn.fit(system, experiments, point, globalisation=False, **options)
+                    for point in points]
+    best = min(separate, key=lambda result: result.loss)
+    together = jaxdyn.fit(system, experiments, guess, globalisation=starts, **options)
+    assert together.strategy == "multi-start (6)"
+    assert together.converged and together.explains_data
+    np.testing.assert_allclose(together.loss, best.loss, rtol=1e-9)
+    for key in ("k", "l0"):
+        np.testing.assert_allclose(float(together.params[key]), float(best.params[key]),
+                                   rtol=1e-7)
+    np.testing.assert_allclose(float(together.params["k"]), ELASTIC_TRUTH["k"], rtol=2e-3)
+    assert sum(result.loss < 1.01 * best.loss for result in separate) == 1  # one start found it
+
+
 def test_horizon_continuation_checks_its_fractions():
     with pytest.raises(ValueError, match="increasing numbers between 0 and 1"):
         jaxdyn.HorizonContinuation(fractions=(0.5, 0.25))
@@ -178,7 +207,12 @@ def test_horizon_continuation_checks_its_fractions():
     part = jaxdyn.HorizonContinuation(min_samples=16).truncated(experiment, 0.125)
     assert part.ts.shape == (26,) and part.observations.shape == (26, 1)
     assert jaxdyn.HorizonContinuation().truncated(experiment, 0.01).ts.shape == (16,)
-    with pytest.raises(ValueError, match="globalisation must be None, False or"):
+    with pytest.raises(ValueError, match="count must be a positive integer"):
+        jaxdyn.MultiStart(0)
+    with pytest.raises(ValueError, match="takes no callback or checkpoint"):
+        jaxdyn.fit(OSCILLATOR, experiment, OSCILLATOR_GUESS, globalisation=jaxdyn.MultiStart(),
+                   callback=lambda *args: False)
+    with pytest.raises(ValueError, match="globalisation must be None, False, a"):
         jaxdyn.fit(OSCILLATOR, experiment, OSCILLATOR_GUESS, globalisation="multi-start")
 
 

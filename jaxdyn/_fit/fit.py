@@ -27,6 +27,7 @@ from .._state import numbers_as_arrays
 from .adequacy import adequacy
 from .experiment import Experiment, HorizonContinuation, MultipleShooting
 from .parametrisation import leaf_parametrisations
+from .starts import MultiStart
 from .residuals import (
     TrajectoryMatching,
     group_experiments,
@@ -237,17 +238,22 @@ def fit(
     - `globalisation`: how a fit escapes local minima. None (default): fit directly, and if
       the optimiser converges (or runs out of steps) where the model does not explain the
       data (`explains_data` False), fit again by `jaxdyn.HorizonContinuation()` from the
-      initial guess and keep the lower loss. A `jaxdyn.HorizonContinuation`: fit by it from the start. False: fit
-      directly only.
+      initial guess and keep the lower loss. A `jaxdyn.HorizonContinuation`: fit by it from
+      the start. A `jaxdyn.MultiStart`: fit from a batch of starting points at once (one
+      vmapped computation) and keep the lowest loss. False: fit directly only.
 
     **Returns:** a `jaxdyn.FitResult`; a converged fit that still does not explain its data
     warns (`jaxdyn.LackOfFitWarning`).
     """
     start_time = time.perf_counter()
     experiments = [experiments] if isinstance(experiments, Experiment) else list(experiments)
-    if not (globalisation is None or isinstance(globalisation, (bool, HorizonContinuation))):
-        raise ValueError("globalisation must be None, False or a jaxdyn.HorizonContinuation, "
-                         f"got {type(globalisation).__name__}.")
+    if not (globalisation is None or globalisation is False
+            or isinstance(globalisation, (HorizonContinuation, MultiStart))):
+        raise ValueError("globalisation must be None, False, a jaxdyn.HorizonContinuation or "
+                         f"a jaxdyn.MultiStart, got {globalisation!r}.")
+    if isinstance(globalisation, MultiStart) and (callback is not None or checkpoint):
+        raise ValueError("A multi-start fit takes no callback or checkpoint (they follow one "
+                         "fit's steps).")
     options = dict(filter_spec=filter_spec, parametrisation=parametrisation, observe=observe,
                    fit_initial_states=fit_initial_states, shooting=shooting,
                    optimiser=optimiser, max_steps=max_steps, rtol=rtol, atol=atol,
@@ -257,6 +263,8 @@ def fit(
                    checkpoint_every=checkpoint_every)
     if isinstance(globalisation, HorizonContinuation):
         result = _by_continuation(globalisation, dynamics, experiments, params, options)
+    elif isinstance(globalisation, MultiStart):
+        result = _multi_start(globalisation, dynamics, experiments, params, options)
     else:
         result = _fit_directly(dynamics, experiments, params, **options)
         # Trapped: converged where the data are not explained, or ran out of steps crawling
@@ -272,6 +280,76 @@ def fit(
     if result.converged and result.lack_of_fit is not None:
         warnings.warn(result.lack_of_fit, LackOfFitWarning, stacklevel=2)
     return result
+
+
+def _multi_start(starts, dynamics, experiments, params, options):
+    """`starts.count` fits at once, one per starting point, as one vmapped computation; the
+    lowest loss is kept (its uncertainty analysed as a single fit's)."""
+    start_time = time.perf_counter()
+    setups = [_setup(dynamics, experiments, point, options["filter_spec"],
+                     options["parametrisation"], options["observe"],
+                     options["fit_initial_states"], options["shooting"], options["optimiser"],
+                     options["rtol"], options["atol"], options["adjoint"],
+                     options["simulate_options"], options["identifiability_tolerance"])
+              for point in starts.starting_points(params, options["filter_spec"])]
+    problem, _, solver, fn, solver_options, tolerance = setups[0]
+    latents = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[s[1] for s in setups])
+    states = eqx.filter_vmap(lambda z: _init(solver, fn, z, problem, solver_options))(latents)
+    solver_arrays, solver_static = eqx.partition(solver, eqx.is_array)
+    step = functools.partial(_compiled_batched_step_for(solver_static, fn), solver_arrays)
+    max_steps = options["max_steps"]
+    done = np.zeros(starts.count, bool)
+    losses = np.full(starts.count, np.inf)
+    history, iteration = [], 0
+    progress = options["progress"]
+    if progress is None:
+        progress = sys.stderr.isatty() or "ipykernel" in sys.modules
+    with tqdm.tqdm(total=max_steps, disable=not progress, desc=f"fit ×{starts.count}",
+                   unit="step", file=sys.stderr, mininterval=0.5) as bar:
+        while not done.all() and iteration < max_steps:
+            latents, states, loss, now_done, finite = step(latents, problem, solver_options,
+                                                           states, jnp.asarray(done))
+            loss, now_done, finite = (np.asarray(x) for x in jax.device_get(
+                (loss, now_done, finite)))
+            if iteration == 0 and not np.isfinite(loss[0]):
+                raise ValueError(INITIAL_FAILURE)
+            # A start whose iterate stopped being finite is dropped (its loss infinite).
+            losses = np.where(done, losses, np.where(finite, loss, np.inf))
+            done = done | now_done | ~finite
+            history.append(losses.copy())
+            iteration += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{np.min(losses):.4g}", done=f"{int(done.sum())}")
+    best = int(np.argmin(losses))
+    converged = bool(done[best] and np.isfinite(losses[best]))
+    if not converged:
+        _warn_unconverged(max_steps, [h[best] for h in history])
+    pick = lambda x: x[best] if eqx.is_array(x) else x  # noqa: E731
+    result = _result(problem, jax.tree_util.tree_map(pick, latents),
+                     jax.tree_util.tree_map(pick, states), [h[best] for h in history],
+                     converged, iteration, options["uncertainty"], tolerance, start_time)
+    return eqx.tree_at(lambda r: r.strategy, result, f"multi-start ({starts.count})")
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled_batched_step_for(solver_static, fn):
+    """`_step` of every start at once (vmapped); a start that has stopped keeps its iterate."""
+
+    @eqx.filter_jit
+    def step(solver_arrays, latents, problem, options, states, done):
+        solver = eqx.combine(solver_arrays, solver_static)
+
+        def one(latent, state, done):
+            new_latent, new_state, loss, now_done, finite = _step(solver, fn, latent, problem,
+                                                                  options, state)
+            keep = lambda new, old: jnp.where(done, old, new) if eqx.is_array(new) else new  # noqa: E731
+            return (jax.tree_util.tree_map(keep, new_latent, latent),
+                    jax.tree_util.tree_map(keep, new_state, state), loss, done | now_done,
+                    finite)
+
+        return eqx.filter_vmap(one)(latents, states, done)
+
+    return step
 
 
 def _by_continuation(continuation, dynamics, experiments, params, options):
