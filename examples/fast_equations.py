@@ -35,7 +35,7 @@ def potential(q, p):
     return -p["m"] * p["g"] * q[0] * jnp.cos(q[1]) + 0.5 * p["k"] * (q[0] - p["l0"]) ** 2
 
 
-def by_hand(t, q, qd, p):  # reference.md §5, 25.2, solved for (r̈, θ̈)
+def by_hand(t, q, qd, p):  # the elastic pendulum's textbook equations, solved for (r̈, θ̈)
     m, g, k, l0 = p["m"], p["g"], p["k"], p["l0"]
     return jnp.stack([q[0] * qd[1] ** 2 + g * jnp.cos(q[1]) - k / m * (q[0] - l0),
                       -(2 * qd[0] * qd[1] + g * jnp.sin(q[1])) / q[0]])

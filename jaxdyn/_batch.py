@@ -186,26 +186,31 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
     padded = _pad(batched, count * chunk)
     in_host = count > 1 or jax.process_count() > 1
     solution = None
-    for k in tqdm.trange(count, disable=not progress, unit="chunk", desc="simulate_batch"):
-        members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
-        with gc_paused():  # the first chunk traces and compiles
-            piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
-                                 _place(shared, mesh, PartitionSpec()))
-        if in_host:
-            piece = _to_host(piece)
-        if throw:
-            _raise_for_failed(piece, k * chunk, size, batched, shared, dynamics, options,
-                              permutation)
-        if count == 1:
-            solution = piece
-            break
-        if solution is None:  # the whole result in host memory, filled chunk by chunk
-            solution = jax.tree_util.tree_map(
-                lambda x: np.empty((size,) + x.shape[1:], x.dtype), piece)
-        stop = min(size, (k + 1) * chunk)
-        for out, x in zip(jax.tree_util.tree_leaves(solution), jax.tree_util.tree_leaves(piece)):
-            out[k * chunk:stop] = x[:stop - k * chunk]
-        del piece
+    bar = tqdm.tqdm(total=count, disable=not progress, unit="chunk", desc="simulate_batch")
+    try:
+        for k in range(count):
+            members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
+            with gc_paused():  # the first chunk traces and compiles
+                piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
+                                     _place(shared, mesh, PartitionSpec()))
+            if in_host:
+                piece = _to_host(piece)
+            if throw:
+                _raise_for_failed(piece, k * chunk, size, batched, shared, dynamics, options,
+                                  permutation)
+            bar.update(1)
+            if count == 1:
+                solution = piece
+                break
+            if solution is None:  # the whole result in host memory, filled chunk by chunk
+                solution = jax.tree_util.tree_map(
+                    lambda x: np.empty((size,) + x.shape[1:], x.dtype), piece)
+            stop = min(size, (k + 1) * chunk)
+            for out, x in zip(jax.tree_util.tree_leaves(solution), jax.tree_util.tree_leaves(piece)):
+                out[k * chunk:stop] = x[:stop - k * chunk]
+            del piece
+    finally:
+        bar.close()
     return jax.tree_util.tree_map(lambda x: x[:size], solution)
 
 

@@ -57,13 +57,18 @@ def _explain(error, name, names, args):
                        if hasattr(a, "shape"))
     message = (f"{name[:1].upper() + name[1:]}, called as {name.split()[-1]}({', '.join(names)})"
                f"{' with ' + shapes if shapes else ''}, raised {type(error).__name__}: {error}")
-    if isinstance(error, KeyError | IndexError | TypeError) and "p" in names:
+    traced = isinstance(error, jax.errors.ConcretizationTypeError
+                        | jax.errors.TracerBoolConversionError
+                        | jax.errors.TracerIntegerConversionError
+                        | jax.errors.TracerArrayConversionError)
+    # JAX's errors for a Python branch on a traced value are TypeErrors too: not a parameter.
+    if isinstance(error, KeyError | IndexError | TypeError) and "p" in names and not traced:
         parameters = args[names.index("p")]
         keys = sorted(map(str, parameters)) if isinstance(parameters, dict) else None
         message += (f"\n\nIs a parameter missing from p? It has keys {keys}." if keys
                     is not None else f"\n\nCheck the parameters p passed: got "
                     f"{type(parameters).__name__}.")
-    if isinstance(error, jax.errors.ConcretizationTypeError | jax.errors.TracerBoolConversionError):
+    if traced:
         message += ("\n\nCallbacks are traced by JAX: branch with jnp.where or jax.lax.cond, "
                     "not Python `if` on values of q, qd or p.")
     return message

@@ -3,6 +3,9 @@ the public methods that take states."""
 
 import functools
 import math
+import os
+import sys
+import warnings
 
 import equinox as eqx
 import jax
@@ -139,9 +142,32 @@ def _device_scalar(value, sign, dtype):
         return jax.device_put(np.asarray(value, dtype))
 
 
+FLOAT32_BY_DEFAULT = (
+    "jaxdyn is computing in float32 because JAX's 64-bit mode is off (float64 inputs are cast "
+    "to float32): mass matrices, long integrations and fits lose most of their accuracy. Turn "
+    "it on before any JAX computation: jax.config.update('jax_enable_x64', True). To compute "
+    "in float32 on purpose, pass float32 arrays (this warning is then not given).")
+_warned_float32 = []
+_LOW_PRECISION = (np.dtype(np.float32), np.dtype(np.float16), np.dtype(jnp.bfloat16))
+
+
+def _caller_outside_jaxdyn() -> int:
+    """The `stacklevel` of the first caller outside the jaxdyn package (the user's line)."""
+    frame, level = sys._getframe(2), 2  # 1: the function that warns; 2: its caller
+    package = os.path.dirname(os.path.abspath(__file__))
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def state_dtype(*candidates):
     """The floating dtype of the first array among `candidates` (the state), else the
-    default float."""
+    default float. Warns once per process when JAX's 64-bit mode is off and the state was not
+    given in float32 on purpose (float32 arrays)."""
+    if not jax.config.jax_enable_x64 and not _warned_float32 and not any(
+            getattr(x, "dtype", None) in _LOW_PRECISION for x in candidates):
+        _warned_float32.append(True)
+        warnings.warn(FLOAT32_BY_DEFAULT, UserWarning, stacklevel=_caller_outside_jaxdyn())
     for x in candidates:
         dtype = getattr(x, "dtype", None)
         if dtype is not None and jnp.issubdtype(dtype, jnp.floating):

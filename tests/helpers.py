@@ -2,7 +2,7 @@
 
 Every reference system pairs a `jaxdyn.Lagrangian` (the energies, written the way a user would)
 with oracles that are independent of jaxdyn: the mass matrix, the accelerations and the energy,
-derived by hand (or taken from reference.md and the standard literature) and evaluated with
+derived by hand (or taken from the standard literature) and evaluated with
 NumPy. Tests cross them with `pytest.mark.parametrize("system", SYSTEMS, ids=SYSTEM_IDS)`.
 """
 

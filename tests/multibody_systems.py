@@ -8,7 +8,9 @@ gravity) is read from the parameters `p`, so an entry can be evaluated in float3
 Conventions: world z is up for the 3D systems; the planar systems move in the xy plane with
 gravity along −y. Rotation matrices map body axes to world axes.
 
-The worked examples 25.1–25.3 follow /work/shared/reference.md §5.
+The worked examples 25.1–25.3 are those of a lecture chapter on the general equation of
+dynamics and Lagrange's equations (two wheels and a bar on an incline, the elastic pendulum,
+a rolling disc with a spring and a hinged rod), with their textbook equations of motion.
 """
 
 import dataclasses

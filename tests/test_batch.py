@@ -107,7 +107,9 @@ def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
 
 def test_chunks_order_and_shared_parameters_agree(members, capsys):
     x0, v0 = members["x0"][:, None], members["v0"][:, None]
-    whole = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0}, **OPTIONS)
+    whole = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, {"m": 1.0, "k": 4.0}, progress=True,
+                                  **OPTIONS)
+    assert "1/1" in capsys.readouterr().err  # one chunk: the bar completes too
     # shared parameters against the same values given per member
     per_member = {"m": np.ones(21), "k": np.full(21, 4.0)}
     batched = jaxdyn.simulate_batch(OSCILLATOR, x0, v0, per_member, batched_params=True,

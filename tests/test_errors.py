@@ -482,3 +482,48 @@ def test_import_chooses_xla_cpu_emitters_or_says_it_could_not():
     assert done["chosen"][1].strip() == "--xla_cpu_use_fusion_emitters=true"
     assert done["late"][0] != 0
     assert "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false" in done["late"][2]
+
+
+def test_float32_by_default_warns_once_naming_the_switch_unless_chosen():
+    """With JAX's 64-bit mode off, float64 inputs silently become float32: jaxdyn warns once,
+    at the user's line, naming the switch; float32 inputs (a choice) give no warning."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    system = ("import numpy as np, jaxdyn; s = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd,"
+              " lambda q, p: 0.5 * q @ q); ")
+    scripts = {
+        "float64 given": system + ("x = jaxdyn.simulate(s, np.ones(1), np.zeros(1), t1=1.0); "
+                                   "y = s.accelerations(0.0, np.ones(1), np.zeros(1)); "
+                                   "print(x.q.dtype, y.dtype)"),
+        "float32 chosen": system + ("x = jaxdyn.simulate(s, np.ones(1, np.float32), "
+                                    "np.zeros(1, np.float32), t1=1.0); print(x.q.dtype)"),
+    }
+    running = {name: subprocess.Popen([sys.executable, "-W", "always", "-c", code], env=env,
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+               for name, code in scripts.items()}
+    done = {name: (process.wait(), *process.communicate()) for name, process in running.items()}
+    code, out, err = done["float64 given"]
+    assert code == 0, err
+    assert out.split() == ["float32", "float32"]
+    assert err.count("jaxdyn is computing in float32") == 1
+    assert "jax.config.update('jax_enable_x64', True)" in err
+    assert err.startswith("<string>:1: UserWarning")  # the user's line, not jaxdyn's
+    code, out, err = done["float32 chosen"]
+    assert code == 0 and out.split() == ["float32"], err
+    assert "jaxdyn is computing in float32" not in err
+
+
+def test_a_python_branch_on_a_traced_value_is_named_without_a_parameter_hint():
+    """A Python `if` on q inside T raises JAX's TracerBoolConversionError (a TypeError): the
+    message names the callback and says to branch with jnp.where, and does not suggest a
+    missing parameter."""
+    def kinetic(q, qd, p):
+        if q[0] > 0:  # a Python branch on a traced value
+            return 0.5 * p["m"] * qd @ qd
+        return qd @ qd
+
+    system = jaxdyn.Lagrangian(kinetic, lambda q, p: 0.0 * q[0])
+    with pytest.raises(ValueError) as caught:
+        system.accelerations(0.0, np.ones(1), np.zeros(1), {"m": 1.0})
+    message = str(caught.value)
+    assert "kinetic" in message.lower() and "jnp.where" in message
+    assert "missing from p" not in message

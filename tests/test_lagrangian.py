@@ -1,6 +1,6 @@
 """`jaxdyn.Lagrangian`: the equations of motion against independent oracles.
 
-Oracles: closed forms, the equations of motion stated in reference.md (solved with NumPy),
+Oracles: closed forms, textbook equations of motion (solved with NumPy),
 sympy.physics.mechanics, and NumPy linear algebra. All comparisons are in float64 to 1e-10
 relative unless the test is about float32.
 """

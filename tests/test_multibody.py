@@ -2,7 +2,7 @@
 
 Every check compares against something independent of the code under test: the other
 formulations (different derivative paths: ∂²T/∂q̇², the Hessian of the Gibbs function, partial
-velocities), closed forms and the textbook equations of reference.md §5, equations derived by
+velocities), closed forms and the textbook equations of worked examples 25.1–25.3, equations derived by
 sympy.physics.mechanics.KanesMethod inside the tests, Euler's equations written by hand,
 conservation laws along simulated trajectories, and finite differences.
 """
@@ -121,7 +121,7 @@ def test_stacked_states_and_vmap(name):
 
 
 # ---------------------------------------------------------------------------------------------
-# Worked examples of reference.md §5
+# Worked textbook examples 25.1–25.3
 # ---------------------------------------------------------------------------------------------
 
 

@@ -58,7 +58,8 @@ class Lagrangian(AbstractDynamics):
         pendulum = jaxdyn.Lagrangian(T, V)
         qdd = pendulum.accelerations(0.0, jnp.array([0.3]), jnp.array([0.0]), p)
 
-    Reference: J. L. Lagrange, Mécanique analytique (1788); reference.md §1.
+    Reference: J. L. Lagrange, Mécanique analytique (1788); H. Goldstein, Classical
+    Mechanics (3rd ed., 2002), §1.4–1.6.
     """
 
     kinetic: Callable

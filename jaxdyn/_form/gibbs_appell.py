@@ -40,7 +40,7 @@ class GibbsAppell(AbstractDynamics):
     then Σ ½ m a_G·a_G + ½ α·I α + α·(ω × I ω) over the bodies (Khang's matrix form: with the
     body accelerations affine in u̇, a = J u̇ + J̇ u, its Hessian is Σ Jᵀ M_body J).
 
-    Reference: P. Appell (1899); N. V. Khang, Vietnam J. Mech. 28(4) (2006); reference.md §3.
+    Reference: P. Appell (1899); N. V. Khang, Vietnam J. Mech. 28(4) (2006).
     """
 
     gibbs: Callable

@@ -30,8 +30,8 @@ class Kane(AbstractDynamics):
 
     `Kane.from_system(system, kinematic_map)` is the same, named like the other formulations.
 
-    Reference: T. R. Kane and D. A. Levinson, Dynamics: Theory and Applications (1985);
-    reference.md §2.
+    Reference: T. R. Kane and D. A. Levinson, Dynamics: Theory and Applications (1985),
+    ch. 6; R. L. Huston, Multibody Dynamics (1990), ch. 4.
     """
 
     system: AbstractMultibody
