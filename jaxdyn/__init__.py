@@ -1,6 +1,6 @@
 """jaxdyn: differentiable analytical dynamics on JAX."""
 
-import importlib.metadata
+from importlib.metadata import PackageNotFoundError as _NotInstalled, version as _version
 import os as _os
 
 # XLA's CPU fusion emitters compile the straight-line scalar programs of small systems
@@ -115,9 +115,9 @@ from ._system.joints import (
 )
 from ._system.multibody import MultibodySystem as MultibodySystem
 from ._system.tree import Link as Link, LinkLoad as LinkLoad, RigidBodyTree as RigidBodyTree
-from ._system.urdf import from_urdf as from_urdf
+from ._system.urdf import example_robot_urdf as example_robot_urdf, from_urdf as from_urdf
 
 try:
-    __version__ = importlib.metadata.version("jaxdyn")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = _version("jaxdyn")
+except _NotInstalled:  # running from a source tree
     __version__ = "0.0.0+unknown"

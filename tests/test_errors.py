@@ -527,3 +527,18 @@ def test_a_python_branch_on_a_traced_value_is_named_without_a_parameter_hint():
     message = str(caught.value)
     assert "kinetic" in message.lower() and "jnp.where" in message
     assert "missing from p" not in message
+
+
+def test_public_names_are_documented_and_no_stray_module_is_exported():
+    """Every public name of `jaxdyn` has a docstring (the documentation renders them), and the
+    only module among them is `jaxdyn.rotations`."""
+    import types
+
+    public = {name: getattr(jaxdyn, name) for name in dir(jaxdyn) if not name.startswith("_")}
+    modules = sorted(name for name, value in public.items()
+                     if isinstance(value, types.ModuleType))
+    assert modules == ["rotations"]
+    undocumented = sorted(name for name, value in public.items()
+                          if not isinstance(value, types.ModuleType)
+                          and not (getattr(value, "__doc__", None) or "").strip())
+    assert not undocumented, undocumented

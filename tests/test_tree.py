@@ -8,6 +8,7 @@ by hand; Euler's equations for a free body; closed forms for springs, dampers an
 conservation of energy and momentum; finite differences for gradients.
 """
 
+import os
 from xml.etree import ElementTree
 
 import jax
@@ -443,3 +444,18 @@ def test_tree_errors():
     massless = jaxdyn.RigidBodyTree([jaxdyn.Link("a", jaxdyn.Revolute())])
     with pytest.raises(RuntimeError, match="mass matrix is singular"):
         jaxdyn.ArticulatedBody(massless).accelerations(0.0, np.zeros(1), np.zeros(1), None)
+
+
+def test_example_robots_are_found_by_name():
+    """`jaxdyn.example_robot_urdf` finds example-robot-data's files by name, unique prefix or
+    path ending, and names the candidates when a name is ambiguous or unknown."""
+    panda = jaxdyn.example_robot_urdf("panda")
+    assert panda.endswith("panda_description/urdf/panda.urdf") and os.path.isfile(panda)
+    assert jaxdyn.example_robot_urdf("ur5").endswith("ur_description/urdf/ur5_robot.urdf")
+    tree, _ = jaxdyn.from_urdf(panda)
+    assert tree.num_speeds == 9  # seven arm joints and two fingers
+    with pytest.raises(ValueError, match="anymal_b_simple_description.*anymal_c_simple"):
+        jaxdyn.example_robot_urdf("anymal")
+    assert jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
+    with pytest.raises(ValueError, match="No example robot is named 'hal9000'.*panda"):
+        jaxdyn.example_robot_urdf("hal9000")

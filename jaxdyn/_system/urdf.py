@@ -132,3 +132,35 @@ def _joint(joint):
                              "axis are supported; rotate the joint's origin instead.")
         return Planar()
     raise ValueError(f"Joint {joint.name!r} has the unknown type {joint.type!r}.")
+
+
+def example_robot_urdf(name: str) -> str:
+    """The path of a robot model of the example-robot-data collection (`pip install
+    example-robot-data`, which installs its files under site-packages), for `from_urdf`.
+
+    `name` is a URDF file's name without ".urdf" ("panda", "ur5_robot", "talos_full_v2",
+    "g1_29dof_rev_1_0"), a unique prefix of one ("ur5" finds ur5_robot.urdf first, "solo12"),
+    or the end of its path ("anymal_c_simple_description/urdf/anymal.urdf") where names repeat.
+    """
+    import importlib.metadata
+
+    try:
+        files = [f for f in importlib.metadata.files("example-robot-data") or []
+                 if str(f).endswith(".urdf")]
+    except importlib.metadata.PackageNotFoundError:
+        raise ValueError("example-robot-data is not installed: pip install example-robot-data "
+                         "(or jaxdyn[test]).") from None
+    stem = lambda f: str(f).rsplit("/", 1)[-1][:-len(".urdf")]  # noqa: E731
+    for candidates in ([f for f in files if str(f).endswith("/" + name)],
+                       [f for f in files if stem(f) == name],
+                       [f for f in files if stem(f) == name + "_robot"],
+                       [f for f in files if stem(f).startswith(name)]):
+        if len(candidates) == 1:
+            return str(candidates[0].locate())
+        if len(candidates) > 1:
+            listed = ", ".join(sorted(str(f).split("example-robot-data/robots/")[-1]
+                                      for f in candidates))
+            raise ValueError(f"{name!r} names several example robots: {listed}. Pass more of "
+                             "the file's name or the end of its path.")
+    known = ", ".join(sorted({stem(f) for f in files}))
+    raise ValueError(f"No example robot is named {name!r}; the collection has: {known}.")
