@@ -145,7 +145,10 @@ def simulate(
       interval needs (or `RESULTS.max_steps_reached` with `throw=False`). Default: 16⁴ =
       65 536, or with fixed steps (concrete t0, t1, dt0) the number of steps the interval
       takes, if that is more (rounded up to a power of two, so that nearby intervals reuse
-      the compiled solve).
+      the compiled solve). Called eagerly (not under `jax.jit`, `vmap` or a derivative), an
+      adaptive solve that exhausts the default budget is run again once with 8× the budget,
+      so that a long interval is integrated whole; the error follows only if that runs out
+      too.
     - `adjoint`: how to differentiate. The default (None), when q0, u0 and p hold at most
       16 floating-point entries and `dense` is False: forward sensitivities. The solve
       carries ∂y/∂x for the entries being differentiated (one tangent each, vectorised) and
@@ -187,6 +190,7 @@ def simulate(
     elif rtol is not None or atol is not None:
         raise ValueError("Pass rtol/atol or a stepsize_controller, not both.")
     _check_tolerances(rtol, atol)
+    default_budget = max_steps is None
     max_steps = _step_budget(max_steps, t0, t1, dt0, stepsize_controller)
     numbers = numbers_as_arrays((p, t0, t1, ts, rtol, atol, dt0), dtype)
     # Few arguments: binding them is part of the per-call cost.
@@ -209,6 +213,13 @@ def simulate(
     solution = _simulate(dynamics, q0, u0, numbers, (*options, True))
     if not np.any(np.asarray(solution.result._value) != RESULTS.successful._value):
         return solution
+    if (default_budget and int(solution.num_steps) >= max_steps
+            and isinstance(options[3], diffrax.AbstractAdaptiveStepSizeController | None)):
+        # The default budget follows the interval: one more try with 8× as many steps.
+        options = (*options[:4], 8 * max_steps, *options[5:])
+        solution = _simulate(dynamics, q0, u0, numbers, (*options, True))
+        if not np.any(np.asarray(solution.result._value) != RESULTS.successful._value):
+            return solution
     return _simulate(dynamics, q0, u0, numbers, (*options, False))
 
 

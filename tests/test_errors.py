@@ -542,3 +542,18 @@ def test_public_names_are_documented_and_no_stray_module_is_exported():
                           if not isinstance(value, types.ModuleType)
                           and not (getattr(value, "__doc__", None) or "").strip())
     assert not undocumented, undocumented
+
+
+def test_the_default_step_budget_follows_a_long_interval_when_called_eagerly():
+    """An oscillator over 40 000 s (about 6400 periods) needs ~100 000 steps at the default
+    tolerance, more than the default budget of 65 536: called eagerly, `simulate` runs it
+    again with 8× the budget and integrates the whole interval (the closed form cos t to
+    1e-5 after 6400 periods); staged in a caller's jit, the budget stays and the result says
+    it ran out."""
+    system = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.5 * q @ q)
+    solution = jaxdyn.simulate(system, np.ones(1), np.zeros(1), t1=40_000.0, save="q")
+    assert int(solution.num_steps) > 16**4
+    np.testing.assert_allclose(solution.q[-1, 0], np.cos(40_000.0), atol=1e-5)
+    staged = jax.jit(lambda q0: jaxdyn.simulate(system, q0, jnp.zeros(1), t1=40_000.0,
+                                                save="q", throw=False).result)(jnp.ones(1))
+    assert staged == jaxdyn.RESULTS.max_steps_reached
