@@ -520,3 +520,28 @@ def test_forward_mode_through_a_projected_solve():
     h = 1e-6
     central = (end(1.0 + h, diffrax.ForwardMode()) - end(1.0 - h, diffrax.ForwardMode())) / (2 * h)
     np.testing.assert_allclose(forward, central, rtol=1e-6, atol=1e-8)
+
+
+def test_consistent_state_keeps_the_prescribed_coordinates_and_speeds():
+    """Slider-crank with the crank's angle θ = 0.7 and speed θ̇ = 3 prescribed (`keep_q`,
+    `keep_u`): they stay exactly as given, and the rest is the closed-form kinematics
+    φ = asin(r sin θ / L), x = r cos θ + L cos φ, φ̇ = r cos θ θ̇ / (L cos φ),
+    ẋ = −r sin θ θ̇ − L sin φ φ̇. Without them the crank speed moves too."""
+    system, (r, length) = slider_crank(), (CRANK["r"], CRANK["L"])
+    theta, theta_dot = 0.7, 3.0
+    q, u = system.consistent_state(0.0, np.array([theta, 0.1, 1.5]),
+                                   np.array([theta_dot, 0.0, 0.0]), CRANK, keep_q=(0,),
+                                   keep_u=(0,))
+    phi = np.arcsin(r * np.sin(theta) / length)
+    phi_dot = r * np.cos(theta) * theta_dot / (length * np.cos(phi))
+    assert float(q[0]) == theta and float(u[0]) == theta_dot
+    np.testing.assert_allclose(q, [theta, phi, r * np.cos(theta) + length * np.cos(phi)],
+                               rtol=1e-12)
+    np.testing.assert_allclose(
+        u, [theta_dot, phi_dot, -r * np.sin(theta) * theta_dot - length * np.sin(phi) * phi_dot],
+        rtol=1e-12)
+    _, moved = system.consistent_state(0.0, np.array([theta, 0.1, 1.5]),
+                                       np.array([theta_dot, 0.0, 0.0]), CRANK)
+    assert abs(float(moved[0]) - theta_dot) > 1e-3
+    with pytest.raises(ValueError, match=r"keep_u must hold indices in \[0, 3\)"):
+        system.consistent_state(0.0, q, u, CRANK, keep_u=(3,))

@@ -20,7 +20,7 @@ NOT_ON_CONSTRAINTS = (
     "Could not place the state on the constraints: after the Gauss–Newton iterations the "
     "holonomic constraints are still violated (|φ| above the tolerance). Likely causes: the "
     "constraints have no solution near the given q (a loop that cannot close with these "
-    "dimensions), a singular configuration where the constraint Jacobian loses rank, or a "
+    "dimensions, or with the coordinates and speeds kept as given), a singular configuration where the constraint Jacobian loses rank, or a "
     "constraint function that is not differentiable there."
 )
 
@@ -70,6 +70,21 @@ def _gauss_newton_step(residual, x):
     step = lx.linear_solve(lx.MatrixLinearOperator(jacobian), value, lx.QR(),
                            throw=False).value
     return x - step, value
+
+
+def _free(kept, size, name) -> np.ndarray:
+    """The indices not in `kept` (entries that may move)."""
+    kept = sorted({int(i) for i in kept})
+    if any(not 0 <= i < size for i in kept):
+        raise ValueError(f"{name} must hold indices in [0, {size}), got {kept}.")
+    return np.array([i for i in range(size) if i not in kept], dtype=int)
+
+
+def _step_on(residual, x, free):
+    """A Gauss–Newton step of `residual` that moves only the entries `free` of x."""
+    if free.size == x.shape[-1]:
+        return _gauss_newton_step(residual, x)[0]
+    return x.at[free].set(_gauss_newton_step(lambda y: residual(x.at[free].set(y)), x[free])[0])
 
 
 def _minimum_norm_solve(matrix, rhs):
@@ -330,14 +345,26 @@ class Constrained(AbstractDynamics):
         return q, u
 
     @public_method("(),(n),(m)->(n),(m)")
-    def consistent_state(self, t, q, u, p=None, *, tol=None, iterations: int = 20):
+    def consistent_state(self, t, q, u, p=None, *, keep_q: tuple[int, ...] = (),
+                         keep_u: tuple[int, ...] = (), tol=None, iterations: int = 20):
         """(q, u) on the constraints, nearest to the given ones: Gauss–Newton with
         minimum-norm steps for φ(t, q) = 0, then the minimum-norm correction of u for
-        C u = b. Use it for initial conditions. Raises an error naming the state when
-        |φ| > `tol` (default √ε·(1 + |q|)) after `iterations`."""
+        C u = b. Use it for initial conditions.
+
+        `keep_q`, `keep_u`: indices of coordinates and speeds that must stay as given (a
+        crank's angle and speed prescribed); only the others move. Without them every entry
+        may move (a crank speed of 3 can come back as 2.64): compare the result with the
+        input to see what moved. Raises an error naming the state when |φ| or |C u − b| >
+        `tol` (default √ε·(1 + |q|)) after `iterations`, e.g. when the kept entries admit no
+        consistent state."""
         t, q, u = self._check(t, q, u)
         start = (t, q, u)
-        q_new, u_new = self.project(t, q, u, p, iterations=iterations)
+        free_q = _free(keep_q, q.shape[-1], "keep_q")
+        free_u = _free(keep_u, u.shape[-1], "keep_u")
+        q_new = q
+        for _ in range(iterations):
+            q_new = _step_on(lambda q: self._phi(t, q, p), q_new, free_q)
+        u_new = _step_on(lambda u: self._velocity_residual(t, q_new, u, p), u, free_u)
         if tol is None:
             tol = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.max(jnp.abs(q)))
         residual = jnp.concatenate([jnp.abs(self._phi(t, q_new, p)),
