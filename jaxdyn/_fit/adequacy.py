@@ -52,6 +52,28 @@ def noise_variance(observations, sqrt_weights) -> float:
     return min(estimates) if estimates else float("nan")
 
 
+def _noise_and_level(groups, tolerance):
+    """(σ̂², the residual variance up to which the data count as explained, the number of
+    weighted observations); σ̂² NaN where the records are too short."""
+    counts = [int(np.sum(np.asarray(g.sqrt_weights) > 0)) for g in groups]
+    estimates = [noise_variance(g.observations, g.sqrt_weights) for g in groups]
+    known = [(e, c) for e, c in zip(estimates, counts) if np.isfinite(e)]
+    if not known:
+        return float("nan"), float("nan"), sum(counts)
+    noise = float(np.average([e for e, _ in known], weights=[c for _, c in known]))
+    weighted = np.concatenate([(np.asarray(g.observations) * np.asarray(g.sqrt_weights)).ravel()
+                               for g in groups])
+    floor = (INTEGRATION_FLOOR * tolerance) ** 2 * float(np.mean(weighted**2))
+    return noise, max(RATIO_MAX * noise, floor), sum(counts)
+
+
+def explained_loss(groups, num_unknowns, tolerance) -> float:
+    """The largest loss ½ Σ w (y − ŷ)² whose residuals `adequacy` counts as explaining the
+    data (∞ where the noise cannot be estimated)."""
+    _, level, count = _noise_and_level(groups, tolerance)
+    return float("inf") if np.isnan(level) else 0.5 * level * max(count - num_unknowns, 1)
+
+
 def adequacy(groups, r_obs, r_continuity, num_unknowns, tolerance):
     """(σ², σ̂², explains the data, continuity closed) at the optimum; the last two are None
     where the records are too short to estimate the noise (fewer than four samples).
@@ -60,17 +82,10 @@ def adequacy(groups, r_obs, r_continuity, num_unknowns, tolerance):
     weighted observation residuals; `r_continuity`: the multiple-shooting continuity residuals
     (empty without); `num_unknowns`: fitted unknowns less the continuity conditions;
     `tolerance`: the simulations' relative tolerance."""
-    counts = [int(np.sum(np.asarray(g.sqrt_weights) > 0)) for g in groups]
-    residual = float(np.sum(np.asarray(r_obs) ** 2) / max(sum(counts) - num_unknowns, 1))
-    estimates = [noise_variance(g.observations, g.sqrt_weights) for g in groups]
-    known = [(e, c) for e, c in zip(estimates, counts) if np.isfinite(e)]
-    if not known:
-        return residual, float("nan"), None, None
-    noise = float(np.average([e for e, _ in known], weights=[c for _, c in known]))
-    weighted = np.concatenate([(np.asarray(g.observations) * np.asarray(g.sqrt_weights)).ravel()
-                               for g in groups])
-    floor = (INTEGRATION_FLOOR * tolerance) ** 2 * float(np.mean(weighted**2))
-    level = max(RATIO_MAX * noise, floor)
+    noise, level, count = _noise_and_level(groups, tolerance)
+    residual = float(np.sum(np.asarray(r_obs) ** 2) / max(count - num_unknowns, 1))
+    if np.isnan(level):
+        return residual, noise, None, None
     r_continuity = np.asarray(r_continuity)
     closed = bool(r_continuity.size == 0 or np.mean(r_continuity**2) <= level)
     return residual, noise, bool(residual <= level), closed

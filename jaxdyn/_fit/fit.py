@@ -24,7 +24,7 @@ import tqdm
 from .._dynamics import AbstractDynamics
 from .._errors import _where
 from .._state import numbers_as_arrays
-from .adequacy import adequacy
+from .adequacy import adequacy, explained_loss
 from .experiment import Experiment, HorizonContinuation, MultipleShooting
 from .parametrisation import leaf_parametrisations
 from .starts import MultiStart
@@ -301,6 +301,12 @@ def _multi_start(starts, dynamics, experiments, params, options):
     done = np.zeros(starts.count, bool)
     losses = np.full(starts.count, np.inf)
     history, iteration = [], 0
+    # A start that has converged where the data are explained has found the optimum (up to
+    # the noise): the others need not run on.
+    latent = setups[0][1]
+    nodes = sum(np.size(x) for x in jax.tree_util.tree_leaves(latent["nodes"]))
+    explained = explained_loss(problem.groups, flatten_latent(latent)[0].size - nodes,
+                               _tolerance_of(problem))
     progress = options["progress"]
     if progress is None:
         progress = sys.stderr.isatty() or "ipykernel" in sys.modules
@@ -320,7 +326,9 @@ def _multi_start(starts, dynamics, experiments, params, options):
             iteration += 1
             bar.update(1)
             bar.set_postfix(loss=f"{np.min(losses):.4g}", done=f"{int(done.sum())}")
-    best = int(np.argmin(losses))
+            if np.any(done & (losses <= explained)):
+                break
+    best = int(np.argmin(np.where(done, losses, np.inf) if done.any() else losses))
     converged = bool(done[best] and np.isfinite(losses[best]))
     if not converged:
         _warn_unconverged(max_steps, [h[best] for h in history])
@@ -709,7 +717,7 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
     residual, noise, explains, closed = adequacy(
         problem.groups, r_obs, r_continuity,
         flatten_latent(latent)[0].size - r_continuity.size,
-        float(problem.simulate_options.get("rtol", np.finfo(r_obs.dtype).eps ** 0.5)))
+        _tolerance_of(problem))
     lack_of_fit = None
     if explains is False or closed is False:
         lack_of_fit = _lack_of_fit_message(residual, noise, explains, closed, r_continuity)
@@ -728,6 +736,12 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
         wall_time=time.perf_counter() - start_time, uncertainty=report, problem=problem,
         latent=latent)
 
+
+
+def _tolerance_of(problem):
+    """The simulations' relative tolerance (√ε where a step-size controller sets it)."""
+    dtype = jnp.result_type(*[g.observations for g in problem.groups])
+    return float(problem.simulate_options.get("rtol", np.finfo(dtype).eps ** 0.5))
 
 
 def _lack_of_fit_message(residual, noise, explains, closed, r_continuity):
