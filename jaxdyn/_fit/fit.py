@@ -122,7 +122,9 @@ class FitResult(eqx.Module):
                 for name, v, e in zip(self.uncertainty.names, values, errors)}
 
     def summary(self) -> str:
-        """A table of the fitted parameters with standard errors and 95 % intervals."""
+        """The loss and convergence, whether the model explains the data (residuals against
+        the noise estimated from the data), and a table of the fitted parameters with
+        standard errors and 95 % intervals."""
         lines = [f"loss {self.loss:.6g} after {self.num_steps} steps "
                  f"({'converged' if self.converged else 'not converged'}, "
                  f"{self.wall_time:.1f} s)"]
