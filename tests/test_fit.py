@@ -485,8 +485,9 @@ def test_parameter_without_effect_is_named():
 @pytest.mark.slow  # a long fit (half a minute or more on two cores)
 def test_chaotic_horizon_needs_multiple_shooting():
     """Eight seconds of a chaotic double pendulum: a single simulation from the initial state
-    is so sensitive to the parameters that Levenberg–Marquardt stalls in a local minimum far
-    from the truth; sixteen shooting segments make the problem benign."""
+    is so sensitive to the parameters that Levenberg–Marquardt, fitting it directly
+    (`globalisation=False`), stalls in a local minimum far from the truth; sixteen shooting
+    segments make the problem benign."""
     ts = np.linspace(0.0, 8.0, 401)
     states = pendulum_data((2.0, 2.4), ts)
     noisy = states + SIGMA * np.random.default_rng(1).standard_normal(states.shape)
@@ -502,7 +503,7 @@ def test_chaotic_horizon_needs_multiple_shooting():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         single = jaxdyn.fit(PENDULUM, experiment, guess, max_steps=60, uncertainty=False,
-                            **kwargs)
+                            globalisation=False, **kwargs)
     shooting = jaxdyn.MultipleShooting(16, initial_nodes=lambda ts, y: (y[:, :2], y[:, 2:]))
     multiple = jaxdyn.fit(PENDULUM, experiment, guess, shooting=shooting, **kwargs)
     assert multiple.converged
