@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._dynamics import AbstractDynamics, equations_of_motion
-from ._errors import error_if, reports_state, reports_state
+from ._errors import error_if, reports_state
 from ._form.controlled import find_controlled, with_inputs
 from ._state import check_vector, numbers_as_arrays
 
@@ -163,7 +163,7 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
     q, u = check_vector(q, "q"), check_vector(u, "u")
     t, p = numbers_as_arrays((t, p), q.dtype)
     t = jnp.asarray(t, q.dtype)
-    n, m = q.shape[0], u.shape[0]
+    n = q.shape[0]
     controlled = find_controlled(dynamics)
     if controlled is None:
         if r is not None:

@@ -1,6 +1,5 @@
 """Featherstone's articulated-body algorithm: forward dynamics of a tree in O(N)."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
