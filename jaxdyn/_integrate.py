@@ -240,6 +240,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
             f"{type(dynamics).__name__}."
         )
     dtype = q0.dtype
+    # Strongly typed (`jnp.full(n, 0.3)` is weakly typed): as the solve's state is, so that
+    # the equations traced for the shape check are the solve's (a weak type retraces them).
+    q0, u0 = jnp.asarray(q0, dtype), jnp.asarray(u0, dtype)
     check_parameter_dtypes(p, dtype)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
