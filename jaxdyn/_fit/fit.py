@@ -279,6 +279,10 @@ def fit(
             if retried.loss < result.loss:
                 result = retried
     result = eqx.tree_at(lambda r: r.wall_time, result, time.perf_counter() - start_time)
+    # Warned for the fit returned only (not for one that globalisation replaced).
+    if result.uncertainty is not None and result.uncertainty.unidentifiable:
+        warnings.warn("\n".join(result.uncertainty.unidentifiable), IdentifiabilityWarning,
+                      stacklevel=2)
     if result.converged and result.lack_of_fit is not None:
         warnings.warn(result.lack_of_fit, LackOfFitWarning, stacklevel=2)
     return result
@@ -712,8 +716,6 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
         for k, i in enumerate(group.indices):
             initial_states[i] = (q0[k], u0[k])
             predictions[i] = predicted[k]
-    if report is not None and report.unidentifiable:
-        warnings.warn("\n".join(report.unidentifiable), IdentifiabilityWarning, stacklevel=4)
     r_obs = np.asarray(r_obs)
     r_continuity = np.asarray(r_all)[r_obs.size:]
     residual, noise, explains, closed = adequacy(
