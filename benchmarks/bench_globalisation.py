@@ -21,7 +21,9 @@ the truth (the noise allows ~0.1 %). "Honest" counts the failures that report
 """
 
 import argparse
+import os
 import statistics
+import sys
 import time
 import warnings
 
@@ -34,18 +36,13 @@ jax.config.update("jax_enable_x64", True)
 
 import jaxdyn  # noqa: E402
 
-TRUTH = {"m": 0.9, "g": 9.81, "k": 35.0, "l0": 1.2}
+sys.path.insert(0, os.path.dirname(__file__))
+from _systems import ELASTIC_PARAMS, elastic_T, elastic_V  # noqa: E402
+from bench_work_precision import elastic_rhs  # noqa: E402
+
+TRUTH = ELASTIC_PARAMS
 TRAINED = {"m": False, "g": False, "k": True, "l0": True}
 SIGMA = 1e-3
-
-
-def kinetic(q, qd, p):
-    return 0.5 * p["m"] * (qd[0] ** 2 + q[0] ** 2 * qd[1] ** 2)
-
-
-def potential(q, p):
-    r, theta = q
-    return -p["m"] * p["g"] * r * jnp.cos(theta) + 0.5 * p["k"] * (r - p["l0"]) ** 2
 
 
 def observe(t, q, u, p):
@@ -53,13 +50,7 @@ def observe(t, q, u, p):
 
 
 def experiments():
-    m, g, k, l0 = (TRUTH[key] for key in ("m", "g", "k", "l0"))
-
-    def rhs(t, y):
-        r, theta, r_dot, theta_dot = y
-        return [r_dot, theta_dot, r * theta_dot**2 + g * np.cos(theta) - k / m * (r - l0),
-                -(2 * r_dot * theta_dot + g * np.sin(theta)) / r]
-
+    rhs = elastic_rhs(TRUTH)
     rng = np.random.default_rng(5)
     out = []
     for q0 in ([1.3, 0.5], [1.0, -0.8]):
@@ -80,7 +71,7 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--starts", type=int, default=40)
     args = parser.parse_args()
-    system, data = jaxdyn.Lagrangian(kinetic, potential), experiments()
+    system, data = jaxdyn.Lagrangian(elastic_T, elastic_V), experiments()
     factors = np.exp(np.random.default_rng(0).uniform(np.log(0.5), np.log(2.0),
                                                       (args.starts, 2)))
     print(f"{args.starts} starting points, k and l0 at 0.5–2x the truth")

@@ -199,28 +199,37 @@ def simulate(
     # The entries a derivative can reach are the traced ones (of a caller's jax.grad, jit or
     # vmap), not concrete arrays closed over: a robot's hundreds of inertial parameters when
     # only q0 is differentiated. Counted with the inputs' arrays (a policy's weights).
-    traced = [x for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))
-              if isinstance(x, jax.core.Tracer)]
     reachable = differentiable_size([x for x in jax.tree_util.tree_leaves(
         (q0, u0, numbers[0], _inputs_of(dynamics))) if isinstance(x, jax.core.Tracer)])
-    options = (dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable)
-    if traced:  # staged into a caller's program: diagnoses failures itself
-        return _simulate(dynamics, q0, u0, numbers, (*options, False))
+
+    def run(budget, lean):
+        return _simulate(dynamics, q0, u0, numbers, (dense, save, solver, stepsize_controller,
+                                                     budget, adjoint, throw, reachable, lean))
+
+    if any(isinstance(x, jax.core.Tracer)
+           for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
+        return run(max_steps, lean=False)  # staged into a caller's program: diagnoses itself
     # Called eagerly: first a lean program, without the diagnosis of failures (which locates
     # a singular mass matrix, tells its cause and formats the message: as much to compile as
     # the equations again). Only when the solve fails is the full program compiled and run,
     # from the same inputs, to the same steps.
-    solution = _simulate(dynamics, q0, u0, numbers, (*options, True))
-    if not np.any(np.asarray(solution.result._value) != RESULTS.successful._value):
+    solution = run(max_steps, lean=True)
+    if _succeeded(solution):
         return solution
     if (default_budget and int(solution.num_steps) >= max_steps
-            and isinstance(options[3], diffrax.AbstractAdaptiveStepSizeController | None)):
+            and (stepsize_controller is None
+                 or isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController))):
         # The default budget follows the interval: one more try with 8× as many steps.
-        options = (*options[:4], 8 * max_steps, *options[5:])
-        solution = _simulate(dynamics, q0, u0, numbers, (*options, True))
-        if not np.any(np.asarray(solution.result._value) != RESULTS.successful._value):
+        max_steps *= 8
+        solution = run(max_steps, lean=True)
+        if _succeeded(solution):
             return solution
-    return _simulate(dynamics, q0, u0, numbers, (*options, False))
+    return run(max_steps, lean=False)
+
+
+def _succeeded(solution) -> bool:
+    """Whether every member of an eager solve succeeded (read on the host, no dispatch)."""
+    return not np.any(np.asarray(solution.result._value) != RESULTS.successful._value)
 
 
 @filter_jit
@@ -521,7 +530,7 @@ def _raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
     return error_if(ts, checks, failed=result != RESULTS.successful)
 
 
-@eqx.filter_jit  # traced once per solve's compilation, though the messages ask for it 6 times
+@eqx.filter_jit  # traced once per solve's compilation, though the messages ask for it 4 times
 def _condition(dynamics, p, t, q, u):
     """κ(M) at one state (∞ where M is not positive definite), for failure messages only.
 
