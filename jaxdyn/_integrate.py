@@ -145,7 +145,7 @@ def simulate(
       interval needs (or `RESULTS.max_steps_reached` with `throw=False`). Default: 16⁴ =
       65 536, or with fixed steps (concrete t0, t1, dt0) the number of steps the interval
       takes, if that is more (rounded up to a power of two, so that nearby intervals reuse
-      the compiled solve). Called eagerly (not under `jax.jit`, `vmap` or a derivative), an
+      the compiled solve). Called eagerly (not under `jax.jit` or `vmap`), an
       adaptive solve that exhausts the default budget is run again once with 8× the budget,
       so that a long interval is integrated whole; the error follows only if that runs out
       too.
@@ -206,10 +206,11 @@ def simulate(
         return _simulate(dynamics, q0, u0, numbers, (dense, save, solver, stepsize_controller,
                                                      budget, adjoint, throw, reachable, lean))
 
-    if any(isinstance(x, jax.core.Tracer)
-           for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
+    if not all(_concrete_value(x) is not None
+               for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
         return run(max_steps, lean=False)  # staged into a caller's program: diagnoses itself
-    # Called eagerly: first a lean program, without the diagnosis of failures (which locates
+    # Called eagerly (values known, also under an un-jitted jax.grad or jax.jvp, whose
+    # tracers carry them): first a lean program, without the diagnosis of failures (which locates
     # a singular mass matrix, tells its cause and formats the message: as much to compile as
     # the equations again). Only when the solve fails is the full program compiled and run,
     # from the same inputs, to the same steps.
@@ -229,7 +230,16 @@ def simulate(
 
 def _succeeded(solution) -> bool:
     """Whether every member of an eager solve succeeded (read on the host, no dispatch)."""
-    return not np.any(np.asarray(solution.result._value) != RESULTS.successful._value)
+    result = _concrete_value(solution.result._value)
+    return not np.any(np.asarray(result) != RESULTS.successful._value)
+
+
+def _concrete_value(x):
+    """`x`'s value where it is known while tracing: `x` itself, or the value a tracer of an
+    un-jitted derivative carries (`jax.grad`, `jax.jvp`); None under `jax.jit` or `vmap`."""
+    if isinstance(x, jax.core.Tracer):
+        return x.to_concrete_value()
+    return x
 
 
 @filter_jit

@@ -237,6 +237,21 @@ def test_mass_matrix_loses_definiteness_during_an_adaptive_solve():
     np.testing.assert_allclose(u, [1.0, 0.0], rtol=1e-12, atol=1e-12)
 
 
+def test_a_failure_under_an_uncompiled_gradient_is_diagnosed():
+    """Under an un-jitted `jax.grad` the solve runs its lean program (the values are known);
+    a failure then runs the full program, whose message names the state as in a plain call."""
+    polar = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * p["m"] * (qd[0] ** 2 + q[0] ** 2 * qd[1] ** 2))
+
+    def loss(r0):
+        return jaxdyn.simulate(polar, jnp.stack([r0, 0.0]), np.array([-1.0, 0.0]), {"m": 1.0},
+                               t1=2.0, dt0=0.25,
+                               stepsize_controller=diffrax.ConstantStepSize()).q[-1, 0]
+
+    with pytest.raises(RuntimeError, match=BECAME_SINGULAR) as info:
+        jax.grad(loss)(1.0)
+    assert _state_in_message(str(info.value))[0] == 1.0
+
+
 def test_singular_mass_matrix_plain_call_names_the_state():
     with pytest.raises(RuntimeError, match=SINGULAR) as info:
         PEND.accelerations(0.5, Q0, np.array([2.0]), {**P, "m": 0.0})
