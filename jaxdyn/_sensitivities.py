@@ -2,7 +2,10 @@
 
 For a solve y(x) of few differentiated inputs x (k entries: parameters, initial state), the
 sensitivities S = ∂y/∂x are carried with the solve by forward mode (k tangents of one solve,
-vectorised), and the derivative is applied as the matrix it is:
+vectorised; where the solver is an explicit Runge–Kutta method and the inputs are the initial
+state and the parameters, as the sensitivity equations Ṡ = ∂f/∂y S + ∂f/∂x integrated with
+the state, so that only the vector field is differentiated), and the derivative is applied as
+the matrix it is:
 
     ẏ = S ẋ   (a JVP),      x̄ = Sᵀ ȳ   (a VJP: JAX transposes the product).
 
@@ -30,19 +33,27 @@ from jax.flatten_util import ravel_pytree
 MAX_FORWARD = 16
 
 
-def with_sensitivities(fn, dynamic):
+def with_sensitivities(fn, dynamic, sensitivity_solve=None):
     """`fn(dynamic)`, differentiated by forward sensitivities: `dynamic` is a pytree of
     arrays, `fn` must be forward-mode differentiable (a diffrax solve with
-    `adjoint=diffrax.ForwardMode()`)."""
-    return _call(fn, dynamic)
+    `adjoint=diffrax.ForwardMode()`).
+
+    `sensitivity_solve(dynamic, basis)`, where given, computes the same solve with its
+    sensitivities carried by the sensitivity equations, Ṡ = ∂f/∂y S + ∂f/∂x (so that only
+    the vector field is differentiated, not the whole solve): `basis` lists, leaf by leaf
+    of `dynamic`, the k tangent directions (an array with a leading axis k) or None for a
+    leaf not differentiated. It returns `(fn(dynamic), S)`, S with the inexact arrays of
+    the output, each with a leading axis k, or None where it does not apply (then the
+    whole solve is differentiated in forward mode)."""
+    return _call(fn, sensitivity_solve, dynamic)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _call(fn, dynamic):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _call(fn, sensitivity_solve, dynamic):
     return fn(dynamic)
 
 
-def _rule(fn, primals, tangents):
+def _rule(fn, sensitivity_solve, primals, tangents):
     (dynamic,), (tangent,) = primals, tangents
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
     tangent_leaves = treedef.flatten_up_to(tangent)
@@ -62,14 +73,23 @@ def _rule(fn, primals, tangents):
         inexact, other = outputs(flat)
         return eqx.combine(inexact, other), _tangents_like(eqx.combine(inexact, other), None)
     basis = jnp.eye(flat.size, dtype=flat.dtype)
-    inexact, sensitivities, other = jax.vmap(
-        lambda v: jax.jvp(outputs, (flat,), (v,), has_aux=True), out_axes=(None, 0, None)
-    )(basis)
+    solved = None
+    if sensitivity_solve is not None:
+        leaf_basis = [None] * len(leaves)
+        for i, directions in zip(active, jax.vmap(unravel)(basis)):
+            leaf_basis[i] = directions
+        solved = sensitivity_solve(dynamic, leaf_basis)
+    if solved is None:  # forward mode through the whole solve, one tangent per entry
+        inexact, sensitivities, other = jax.vmap(
+            lambda v: jax.jvp(outputs, (flat,), (v,), has_aux=True), out_axes=(None, 0, None)
+        )(basis)
+        out = eqx.combine(inexact, other)
+    else:
+        out, sensitivities = solved
     direction = ravel_pytree([tangent_leaves[i] for i in active])[0]
     # ẏ = S ẋ: linear in ẋ, so that reverse mode transposes it to x̄ = Sᵀ ȳ.
     applied = jax.tree_util.tree_map(lambda s: jnp.tensordot(direction, s, axes=1),
                                      sensitivities)
-    out = eqx.combine(inexact, other)
     return out, _tangents_like(out, applied)
 
 
