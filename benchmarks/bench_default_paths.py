@@ -29,10 +29,13 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
 
 jax.config.update("jax_enable_x64", True)
 
 import jaxdyn  # noqa: E402
+from jaxdyn._runge_kutta import UnrolledStages  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _systems import (  # noqa: E402
@@ -55,6 +58,7 @@ from _timing import in_loop, interleaved  # noqa: E402
 
 TOL = 1e-8
 SOLVER = diffrax.Tsit5()
+UNROLLED = UnrolledStages(SOLVER)
 ROWS = []  # (row, system, ratio, target)
 
 
@@ -78,7 +82,8 @@ def systems():
     }
 
 
-def floor_solve(hand, n, t1, ts=None, adjoint=diffrax.RecursiveCheckpointAdjoint(), jit=True):
+def floor_solve(hand, n, t1, ts=None, adjoint=diffrax.RecursiveCheckpointAdjoint(), jit=True,
+                solver=SOLVER):
     """jax.jit of diffeqsolve on the hand-written equations, state y = [q; q̇]."""
     def field(t, y, p):
         return jnp.concatenate([y[n:], hand(t, y[:n], y[n:], p)])
@@ -86,11 +91,41 @@ def floor_solve(hand, n, t1, ts=None, adjoint=diffrax.RecursiveCheckpointAdjoint
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
 
     def solve(y0, p):
-        return diffrax.diffeqsolve(diffrax.ODETerm(field), SOLVER, 0.0, t1, None, y0, args=p,
+        return diffrax.diffeqsolve(diffrax.ODETerm(field), solver, 0.0, t1, None, y0, args=p,
                                    saveat=saveat, max_steps=16**4, adjoint=adjoint,
                                    stepsize_controller=diffrax.PIDController(rtol=TOL,
                                                                              atol=TOL)).ys
     return jax.jit(solve) if jit else solve
+
+
+def floor_sensitivities(hand, n, t1, solver=SOLVER):
+    """The floor of a gradient by forward sensitivities: the hand-written equations integrated
+    with their sensitivity equations Ṡ = ∂f/∂y S + ∂f/∂p (one vectorised `jax.jvp` of the
+    closed form per stage, z = [y; S], the error norm on y alone so that the steps are the
+    forward solve's), the gradient of the loss on q(t₁) contracted from S by hand."""
+    def field(t, y, p):
+        return jnp.concatenate([y[n:], hand(t, y[:n], y[n:], p)])
+
+    def loss_and_grad(y0, p):
+        flat, unravel = ravel_pytree(p)
+        k, m = flat.size, y0.size
+
+        def augmented(t, z, flat):
+            y, s = z[:m], z[m:].reshape(k, m)
+            f, rates = jax.vmap(lambda s_k, e_k: jax.jvp(
+                lambda y, x: field(t, y, unravel(x)), (y, flat), (s_k, e_k)),
+                out_axes=(None, 0))(s, jnp.eye(k, dtype=flat.dtype))
+            return jnp.concatenate([f, rates.reshape(-1)])
+
+        norm = lambda error: optx.rms_norm(error[:m])  # diffrax's default norm, on y  # noqa: E731
+        z = diffrax.diffeqsolve(
+            diffrax.ODETerm(augmented), solver, 0.0, t1, None,
+            jnp.concatenate([y0, jnp.zeros(k * m, y0.dtype)]), args=flat,
+            saveat=diffrax.SaveAt(t1=True), max_steps=16**4,
+            stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL, norm=norm)).ys[-1]
+        q, s = z[:n], z[m:].reshape(k, m)[:, :n]
+        return jnp.sum(q**2), s @ (2 * q)
+    return loss_and_grad
 
 
 def as_arrays(params):
@@ -235,14 +270,25 @@ def gradients(name, system, params, hand, q0, u0, rounds):
                          "grad": (jax.jit(jax.grad(loss)), (p_arrays,)),
                          "hand": (jax.jit(hand_forward), (p_arrays,)),
                          "hand reverse": (jax.jit(jax.grad(hand_reverse)), (p_arrays,)),
-                         "hand forward": (jax.jit(jax.jacfwd(hand_tangents)), (p_arrays,))},
+                         "hand forward": (jax.jit(jax.jacfwd(hand_tangents)), (p_arrays,)),
+                         "hand sensitivities": (jax.jit(floor_sensitivities(hand, len(q0), 10.0)),
+                                                (y0, p_arrays)),
+                         # The same two solves with the stages written out, as jaxdyn steps.
+                         "hand unrolled": (floor_solve(hand, len(q0), 10.0, solver=UNROLLED),
+                                           (y0, p_arrays)),
+                         "hand sensitivities unrolled": (jax.jit(floor_sensitivities(
+                             hand, len(q0), 10.0, UNROLLED)), (y0, p_arrays))},
                         number=3, rounds=rounds)
     report("jax.grad(simulate) / forward simulate", name, times["grad"] / times["forward"],
            4.0)
     print(f"       floor experiment, / the hand-written forward solve: jaxdyn's gradient "
           f"{times['grad'] / times['hand']:.2f}x, diffrax on the hand-written equations: "
           f"ForwardMode (jacfwd) {times['hand forward'] / times['hand']:.2f}x, checkpointed "
-          f"reverse {times['hand reverse'] / times['hand']:.2f}x")
+          f"reverse {times['hand reverse'] / times['hand']:.2f}x, its sensitivity equations "
+          f"(vectorised jvp, error on y) {times['hand sensitivities'] / times['hand']:.2f}x; "
+          f"jaxdyn's forward solve {times['forward'] / times['hand']:.2f}x; with the stages "
+          f"written out (jaxdyn's UnrolledStages), the hand-written sensitivity equations / "
+          f"forward solve {times['hand sensitivities unrolled'] / times['hand unrolled']:.2f}x")
     try:
         jax.jacfwd(forward)(p_arrays)
         works = "works"
