@@ -8,7 +8,7 @@ from .._linalg import ldl, ldl_solve
 from .._state import check_vector
 from .._system import spatial
 from .._system.tree import RigidBodyTree
-from .kane import kane_equations
+from .composite import composite_mass_matrix
 from .newton_euler import joint_forces as newton_euler_joint_forces, newton_euler
 
 
@@ -59,8 +59,9 @@ class ArticulatedBody(AbstractDynamics):
        from the world's acceleration (0, −g) (gravity as an acceleration of the base).
 
     Joint forces τ gather `forces`, the dampers, the springs and any potential other than
-    gravity (−Kᵀ ∂V/∂q); loads enter as the links' external forces f_i. `mass_matrix` and
-    `forcing` are formed as Kane's (partial velocities from the same recursive kinematics).
+    gravity (−Kᵀ ∂V/∂q); loads enter as the links' external forces f_i. `mass_matrix` is
+    formed by the composite-rigid-body algorithm (§6.2) and `forcing` by the recursive
+    Newton–Euler algorithm at u̇ = 0 (§5.3).
     All three run on the tree with its fixed joints welded (`RigidBodyTree.merge_fixed`).
     This is the fast formulation for trees; the others agree with it to round-off.
 
@@ -99,9 +100,13 @@ class ArticulatedBody(AbstractDynamics):
         return self.tree.kinetic_energy(t, q, u, p), self.tree.potential_energy(t, q, p)
 
     def form_equations(self, t, q, u, p=None):
-        """(M, f), formed as Kane's."""
+        """(M, f): M by the composite-rigid-body algorithm, f = τ − c(q, u) + g(q) + Jᵀ f^ext
+        by the recursive Newton–Euler algorithm at u̇ = 0."""
         t, q, u = self._check(t, q, u)
-        return kane_equations(self.tree.merge_fixed(), None, t, q, u, p)
+        bodies = self.tree.merge_fixed()
+        forcing = (newton_euler_joint_forces(bodies, t, q, u, p)
+                   - newton_euler(bodies, t, q, u, jnp.zeros_like(u), p))
+        return composite_mass_matrix(bodies, t, q, p), forcing
 
     def form_accelerations(self, t, q, u, p=None, *, small):
         t, q, u = self._check(t, q, u)
