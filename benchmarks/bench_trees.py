@@ -312,7 +312,7 @@ def robots(names):
             "forward dynamics, default (checked)": (
                 lambda q, u, ud: aba.accelerations(t, q, u, None),
                 lambda q, v, a: pin.aba(model, data, q, v, a)),
-            "mass matrix (as Kane's)": (
+            "mass matrix (CRBA)": (
                 lambda q, u, ud: aba.mass_matrix(t, q, u, None),
                 lambda q, v, a: pin.crba(model, data, q)),
             "inverse dynamics (RNEA)": (

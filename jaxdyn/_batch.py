@@ -13,7 +13,8 @@ import tqdm
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._compile import gc_paused
+from ._compile import FUSION_EMITTERS, batch_emitters, filter_jit, gc_paused
+from ._dynamics import straight_line_size
 from ._errors import error_if, reports_state
 from ._form.controlled import with_inputs
 from ._integrate import simulate
@@ -66,7 +67,11 @@ def simulate_batch(
     between a batch and single `jaxdyn.simulate` calls (scalar code).
     Batches larger than memory run in chunks, one compiled solve reused for every chunk, each
     chunk's results moved to host memory before the next starts. Each device runs the program
-    of `jax.vmap(simulate)` on its members, and the results equal it bit for bit.
+    of `jax.vmap(simulate)` on its members. On a CPU it compiles that program with XLA's
+    fusion emitters when the equations are small (at most 800 scalar operations as
+    straight-line code; they vectorise the solver's loop over the members better) and with
+    the process's default otherwise, so that its results equal those of a user's
+    `jax.jit(jax.vmap(simulate))` to the last bits, which chaotic motion amplifies.
 
     **Arguments:**
 
@@ -130,8 +135,9 @@ def simulate_batch(
         permutation = _by_cost(dynamics, q0, u0, p, batched_params, chunk, devices, numbers,
                                options, dtype)
         batched = jax.tree_util.tree_map(lambda x: np.asarray(x)[permutation], batched)
+    emitters = _emitters(dynamics, batched, shared, mesh, dtype)
     solution = _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw,
-                                permutation)
+                                permutation, emitters)
     if permutation is not None:
         solution = jax.tree_util.tree_map(lambda x: x[np.argsort(permutation)], solution)
     return solution
@@ -178,12 +184,14 @@ def _by_cost(dynamics, q0, u0, p, batched_params, chunk, devices, numbers, optio
     return np.argsort(np.asarray(pilot.num_steps), kind="stable")
 
 
-def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permutation):
+def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permutation,
+                     emitters):
     """The sharded solve of every chunk of members, gathered (in host memory when there are
     several chunks or hosts), each chunk's failures reported as it finishes."""
     dynamics, mesh, options = setup[0], setup[1], dict(setup[2])
     count = math.ceil(size / chunk)
     padded = _pad(batched, count * chunk)
+    solve_chunk = _SOLVE_CHUNK[emitters]
     in_host = count > 1 or jax.process_count() > 1
     solution = None
     bar = tqdm.tqdm(total=count, disable=not progress, unit="chunk", desc="simulate_batch")
@@ -191,7 +199,7 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
         for k in range(count):
             members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
             with gc_paused():  # the first chunk traces and compiles
-                piece = _solve_chunk(setup, _place(members, mesh, _BATCH),
+                piece = solve_chunk(setup, _place(members, mesh, _BATCH),
                                      _place(shared, mesh, PartitionSpec()))
             if in_host:
                 piece = _to_host(piece)
@@ -289,7 +297,21 @@ def _sharded(setup, members, shared):
                          out_specs=_BATCH, check_vma=False)(members, shared, arrays)
 
 
-_solve_chunk = eqx.filter_jit(_sharded)
+# The chunks' solve, by XLA's compiler options (`batch_emitters`).
+_SOLVE_CHUNK = {None: filter_jit(_sharded),
+                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS)}
+
+
+def _emitters(dynamics, batched, shared, mesh, dtype):
+    """The key of `_SOLVE_CHUNK` for this system, by its equations' size (as the solve traces
+    them, from the first member: the trace is cached and shared with the solve's)."""
+    first = jax.tree_util.tree_map(lambda x: jnp.asarray(x[0]), batched)
+    q0, u0, p = eqx.combine(first, shared[0])
+    q0, u0 = jnp.asarray(q0, dtype), jnp.asarray(u0, dtype)
+    t0 = jnp.asarray(shared[1].get("t0", 0.0), dtype)
+    size = straight_line_size(dynamics, t0, q0, u0, p)
+    options = batch_emitters(size, mesh.devices.flat[0].platform)
+    return None if options is None else "fusion"
 
 
 def _staged(setup, batched, shared, size, chunk, throw):

@@ -17,9 +17,10 @@ import jax
 import numpy as np
 
 
-def filter_jit(fn):
+def filter_jit(fn, compiler_options=None):
     """`eqx.filter_jit(fn)` (arrays traced, other leaves static; non-array outputs allowed)
     with a cached dispatch; outside a trace the outputs are ready when it returns.
+    `compiler_options`: XLA's options for the programs compiled here (`jax.jit`'s).
 
     The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
     by identity, modules and numbers by value) and the shapes and dtypes of their arrays.
@@ -45,7 +46,7 @@ def filter_jit(fn):
         except TypeError:  # an unhashable option
             return fallback(*args)
         if entry is None:
-            entry = cache[key] = _Entry(fn, treedef, leaves, dynamic)
+            entry = cache[key] = _Entry(fn, treedef, leaves, dynamic, compiler_options)
             with gc_paused():  # the first call traces and compiles
                 out = jax.block_until_ready(entry.compiled(*arrays))
         else:
@@ -56,6 +57,28 @@ def filter_jit(fn):
             entry.out_treedef, _merge(entry.out_static, entry.out_dynamic, out))
 
     return wrapper
+
+
+# XLA's CPU backend has two code generators for fused element-wise work (benchmarks/README.md,
+# "The straight-line program and XLA's CPU emitters"). `import jaxdyn` makes the elemental
+# emitters the process's default: on straight-line programs of more than a few hundred scalar
+# operations the newer fusion emitters generate code up to thousands of times slower. But a
+# vmapped solve of equations smaller than this (scalar operations) runs faster with the fusion
+# emitters, which vectorise the solver's loop over the batch better: 1024 double pendulums,
+# T as 2-vectors (401 operations), 0.70x the time; as rotation matrices (597), 0.60x; a chain
+# of 3 rods (829) the same; a chain of 5 (1528) 1.2x slower. Batched programs that jaxdyn
+# compiles itself choose by this bound; a user's own `jax.jit` follows the process's choice.
+FUSION_EMITTERS_MAX = 800
+FUSION_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
+
+
+def batch_emitters(size, platform) -> dict | None:
+    """XLA's compiler options for a vmapped solve on `platform` of equations of `size` scalar
+    operations (None when they run as array programs): the fusion emitters for small ones on
+    a CPU, else the process's default (None)."""
+    if platform == "cpu" and size is not None and size <= FUSION_EMITTERS_MAX:
+        return FUSION_EMITTERS
+    return None
 
 
 @contextlib.contextmanager
@@ -79,7 +102,7 @@ class _Entry:
     """One argument structure: its `jax.jit`, and the static part of its output (recorded
     when traced)."""
 
-    def __init__(self, fn, treedef, leaves, dynamic):
+    def __init__(self, fn, treedef, leaves, dynamic, compiler_options):
         template = list(leaves)
 
         def arrays_only(*arrays):
@@ -98,7 +121,7 @@ class _Entry:
         # call's inputs are not kept alive by the cache.
         for i in dynamic:
             template[i] = None
-        self.compiled = jax.jit(arrays_only)
+        self.compiled = jax.jit(arrays_only, compiler_options=compiler_options)
 
 
 def _merge(static, dynamic_positions, dynamic_values):

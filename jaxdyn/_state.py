@@ -222,3 +222,17 @@ def public_function(num_static: int = 1):
         return wrapper
 
     return decorator
+
+
+def frozen_constant(x):
+    """A numeric constant as (nested tuples of) Python floats, not an array: a compiled
+    program then sees it as a constant, folded into straight-line code, rather than as one
+    more input (`eqx.filter_jit` traces every array of a module). Functions of p, None and
+    traced values are kept as they are."""
+    if x is None or callable(x) or isinstance(x, jax.core.Tracer):
+        return x
+
+    def frozen(value):
+        return tuple(frozen(v) for v in value) if isinstance(value, list) else value
+
+    return frozen(np.asarray(x, dtype=float).tolist())

@@ -87,7 +87,7 @@ def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
     assert bool(jnp.all(solution.result == jaxdyn.RESULTS.successful))
     np.testing.assert_allclose(solution.q[..., 0], closed_form(x0[:, 0], v0[:, 0], k),
                                atol=CLOSED_FORM_ATOL)
-    # Each device runs the program of jax.vmap(simulate): equal bit for bit.
+    # Each device runs the program of jax.vmap(simulate): equal bit for bit on this system.
     vmapped = jax.jit(jax.vmap(lambda x, v, k: jaxdyn.simulate(
         OSCILLATOR, x, v, {"m": 1.0, "k": k}, **OPTIONS)))(x0, v0, k)
     single = jax.jit(lambda x, v, k: jaxdyn.simulate(OSCILLATOR, x, v, {"m": 1.0, "k": k},

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from .._convention import CONFIGURATION_ARGS, call
+from .._state import frozen_constant
 
 
 def _value(x, p):
@@ -42,7 +43,7 @@ class Particle(eqx.Module):
     - `position`: r(q, p) → (3,) in the world frame (r(t, q, p) in a time-dependent system).
     """
 
-    mass: float | Callable
+    mass: float | Callable = eqx.field(converter=frozen_constant)
     position: Callable
 
     def _position(self, time_dependent, t, q, p):
@@ -93,8 +94,8 @@ class RigidBody(eqx.Module):
     Angular velocity comes from Ṙ: [ω_b]× = Rᵀ Ṙ (body axes), by one JVP of `orientation`.
     """
 
-    mass: float | Callable
-    inertia: jax.Array | Callable
+    mass: float | Callable = eqx.field(converter=frozen_constant)
+    inertia: jax.Array | Callable = eqx.field(converter=frozen_constant)
     position: Callable
     orientation: Callable
 

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._convention import call, scalar, vector
-from .._state import check_vector
+from .._state import check_vector, frozen_constant
 from . import spatial
 from .base import AbstractMultibody
 from .joints import AbstractJoint, Fixed
@@ -110,11 +110,11 @@ class Link(eqx.Module):
     translation: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
                                    converter=lambda x: _vector3(x, "A link's translation"))
     rotation: tuple = eqx.field(static=True, default=None, converter=_rotation)
-    mass: float | Callable = 0.0
-    com: jax.Array | Callable = (0.0, 0.0, 0.0)
-    inertia: jax.Array | Callable | None = None
-    stiffness: float | Callable | None = None
-    damping: float | Callable | None = None
+    mass: float | Callable = eqx.field(default=0.0, converter=frozen_constant)
+    com: jax.Array | Callable = eqx.field(default=(0.0, 0.0, 0.0), converter=frozen_constant)
+    inertia: jax.Array | Callable | None = eqx.field(default=None, converter=frozen_constant)
+    stiffness: float | Callable | None = eqx.field(default=None, converter=frozen_constant)
+    damping: float | Callable | None = eqx.field(default=None, converter=frozen_constant)
     rest: float = eqx.field(static=True, default=0.0)
 
     def __check_init__(self):
@@ -218,7 +218,7 @@ class RigidBodyTree(AbstractMultibody):
     """
 
     links: tuple[Link, ...] = eqx.field(converter=tuple)
-    gravity: jax.Array | Callable | None = None
+    gravity: jax.Array | Callable | None = eqx.field(default=None, converter=frozen_constant)
     forces: Callable | None = None
     loads: tuple[LinkLoad, ...] = eqx.field(default=(), converter=tuple)
     potential: Callable | None = None
