@@ -169,6 +169,32 @@ def test_a_fit_stopped_in_a_local_minimum_says_so_and_continuation_finds_the_tru
     assert found.loss < 1e-3 * trapped.loss
 
 
+def test_multiple_shooting_with_partial_observations_from_a_short_horizon_fit():
+    """Multiple shooting when the data observe only the bob's horizontal position (the state
+    (r, θ, ṙ, θ̇) cannot be read from it): with horizon continuation the ten segments' nodes
+    start on a simulation at the optimum of the short horizons, and the fit from the trapped
+    guess (k 2×, l₀ 0.8×) ends at the truth with the segments joined into one solution."""
+    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
+    trained = {"m": False, "g": False, "k": True, "l0": True}
+    system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
+    found = jaxdyn.fit(system, experiments, guess, filter_spec=trained, observe=observe,
+                       fit_initial_states=True, uncertainty=False,
+                       shooting=jaxdyn.MultipleShooting(10),
+                       globalisation=jaxdyn.HorizonContinuation())
+    assert found.strategy == "horizon continuation"
+    assert found.converged and found.explains_data and found.lack_of_fit is None
+    np.testing.assert_allclose(float(found.params["k"]), ELASTIC_TRUTH["k"], rtol=2e-3)
+    np.testing.assert_allclose(float(found.params["l0"]), ELASTIC_TRUTH["l0"], rtol=2e-3)
+    # One solution: the fitted initial states, simulated whole, give the fitted predictions.
+    for experiment, (q0, u0), predicted in zip(experiments, found.initial_states,
+                                               found.predictions):
+        whole = jaxdyn.simulate(system, q0, u0, found.params, t1=float(experiment.ts[-1]),
+                                ts=experiment.ts, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(whole.q[:, :1] * jnp.sin(whole.q[:, 1:]), predicted,
+                                   atol=1e-4)
+
+
 def test_multi_start_equals_the_best_of_the_separate_fits():
     """Six starting points around the trapped guess of the elastic pendulum, fitted at once
     (one vmapped computation, `jaxdyn.MultiStart`) and one by one: the multi-start result is

@@ -85,6 +85,13 @@ class MultipleShooting(eqx.Module):
     - `initial_nodes`: None, or a function (ts, observations) → (q (k, n), u (k, m)) giving a
       state at every sample from the data (e.g. measured angles and rates), from which the
       nodes start. With None, the nodes start on a simulation at the initial parameters.
+
+    Where the data do not observe the state (a marker's position, some coordinates), the
+    nodes cannot be read from them: fit with `globalisation=jaxdyn.HorizonContinuation()`,
+    and the nodes start on a simulation at the optimum of the short horizons (the
+    continuation's stages, single-shooting fits of the first parts of every record, whose
+    single basin contains the truth), not at the initial guess. The default globalisation
+    takes that route when a fit by multiple shooting ends trapped.
     """
 
     segments: int = eqx.field(static=True)
