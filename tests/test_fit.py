@@ -121,6 +121,12 @@ def _elastic_V(q, p):
     return -p["m"] * p["g"] * r * jnp.cos(theta) + 0.5 * p["k"] * (r - p["l0"]) ** 2
 
 
+def _bob_x(t, q, u, p):
+    """What the elastic pendulum's records observe: the bob's horizontal position r sin θ
+    (one function for all tests, so that their fits share compiled programs)."""
+    return q[:1] * jnp.sin(q[1:])
+
+
 def elastic_experiments(sigma=1e-3):
     """Two experiments of 4 s of the elastic pendulum (polar coordinates r, θ from the
     downward vertical), only the bob's horizontal position r sin θ observed, from SciPy."""
@@ -148,7 +154,7 @@ def test_a_fit_stopped_in_a_local_minimum_says_so_and_continuation_finds_the_tru
     minimum (k ≈ 74, l₀ ≈ 1.5); the fit reports that the residuals are far above the noise
     estimated from the data (unweighted), and warns. By default the trapped fit is taken up
     again by horizon continuation, which ends at the truth (k, l₀ to the noise's accuracy)."""
-    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    observe = _bob_x
     guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
     trained = {"m": False, "g": False, "k": True, "l0": True}
     system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
@@ -174,7 +180,7 @@ def test_multiple_shooting_with_partial_observations_from_a_short_horizon_fit():
     (r, θ, ṙ, θ̇) cannot be read from it): with horizon continuation the ten segments' nodes
     start on a simulation at the optimum of the short horizons, and the fit from the trapped
     guess (k 2×, l₀ 0.8×) ends at the truth with the segments joined into one solution."""
-    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    observe = _bob_x
     guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
     trained = {"m": False, "g": False, "k": True, "l0": True}
     system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
@@ -199,7 +205,7 @@ def test_multi_start_equals_the_best_of_the_separate_fits():
     """Six starting points around the trapped guess of the elastic pendulum, fitted at once
     (one vmapped computation, `jaxdyn.MultiStart`) and one by one: the multi-start result is
     the best separate fit (the one that reaches the truth), to round-off."""
-    observe = lambda t, q, u, p: q[:1] * jnp.sin(q[1:])  # noqa: E731
+    observe = _bob_x
     guess = {**ELASTIC_TRUTH, "k": 2.0 * ELASTIC_TRUTH["k"], "l0": 0.8 * ELASTIC_TRUTH["l0"]}
     trained = {"m": False, "g": False, "k": True, "l0": True}
     system, experiments = jaxdyn.Lagrangian(_elastic_T, _elastic_V), elastic_experiments()
@@ -230,9 +236,9 @@ def test_horizon_continuation_checks_its_fractions():
     with pytest.raises(ValueError, match="increasing numbers between 0 and 1"):
         jaxdyn.HorizonContinuation(fractions=(0.5, 1.0))
     experiment = oscillator_experiment()
-    part = jaxdyn.HorizonContinuation(min_samples=16).truncated(experiment, 0.125)
-    assert part.ts.shape == (26,) and part.observations.shape == (26, 1)
-    assert jaxdyn.HorizonContinuation().truncated(experiment, 0.01).ts.shape == (16,)
+    assert jaxdyn.HorizonContinuation(min_samples=16).samples(experiment, 0.125) == 26
+    assert jaxdyn.HorizonContinuation().samples(experiment, 0.01) == 16
+    assert jaxdyn.HorizonContinuation(min_samples=300).samples(experiment, 0.5) == 201
     with pytest.raises(ValueError, match="count must be a positive integer"):
         jaxdyn.MultiStart(0)
     with pytest.raises(ValueError, match="takes no callback or checkpoint"):
@@ -240,6 +246,34 @@ def test_horizon_continuation_checks_its_fractions():
                    callback=lambda *args: False)
     with pytest.raises(ValueError, match="globalisation must be None, False, a"):
         jaxdyn.fit(OSCILLATOR, experiment, OSCILLATOR_GUESS, globalisation="multi-start")
+
+
+def test_a_continuation_stage_fits_the_first_samples_alone():
+    """A stage of a horizon continuation keeps the record's shapes (its later samples at its
+    last time, weight 0, so that all stages share one compiled program): it must end where a
+    fit of the record cut after those samples ends, with the residual count of the cut."""
+    from jaxdyn._fit.fit import _fit_directly
+
+    experiment = oscillator_experiment()
+    cut = jaxdyn.Experiment(experiment.ts[:51], experiment.observations[:51], [1.0], [0.0],
+                            weights=experiment.weights[:51])
+    options = dict(filter_spec=OSCILLATOR_TRAINED, progress=False)
+    alone = jaxdyn.fit(OSCILLATOR, cut, OSCILLATOR_GUESS, globalisation=False, **options)
+    defaults = dict(parametrisation=None, observe=None, fit_initial_states=False,
+                    shooting=None, optimiser=None, max_steps=200, rtol=1e-8, atol=1e-8,
+                    adjoint=None, simulate_options=None, uncertainty=True,
+                    identifiability_tolerance=None, callback=None, checkpoint=None,
+                    checkpoint_every=1)
+    stage = _fit_directly(OSCILLATOR, [experiment], OSCILLATOR_GUESS, horizons=[51],
+                          **{**defaults, **options})
+    for key in ("k", "c"):
+        np.testing.assert_allclose(float(stage.params[key]), float(alone.params[key]),
+                                   rtol=1e-10)
+    np.testing.assert_allclose(stage.loss, alone.loss, rtol=1e-10)
+    assert stage.uncertainty.degrees_of_freedom == alone.uncertainty.degrees_of_freedom == 49
+    # The stage simulated only its horizon: its predictions stop at the cut's last time.
+    np.testing.assert_allclose(stage.predictions[0][51:], stage.predictions[0][50:51].repeat(
+        150, axis=0))
 
 
 def test_standard_errors_match_the_spread_over_noise_realisations(oscillator_fit):

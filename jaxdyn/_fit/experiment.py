@@ -111,7 +111,9 @@ class HorizonContinuation(eqx.Module):
     local minimum wherever the simulated and measured oscillations are a whole number of
     periods apart; over the first period or two it has one basin, whose optimum is close to
     the global one of the longer horizon (Bock 1983; Voss, Timmer and Kurths 2004). Each stage
-    lengthens the horizon while the fit stays in that basin.
+    lengthens the horizon while the fit stays in that basin. A stage keeps the records' shapes
+    (its later samples stay in place, at its last time and with weight 0, and are not
+    simulated), so that the stages and the whole fit share one compiled program.
 
     **Arguments:**
 
@@ -130,10 +132,8 @@ class HorizonContinuation(eqx.Module):
             raise ValueError("fractions must be increasing numbers between 0 and 1, got "
                              f"{self.fractions!r}.")
 
-    def truncated(self, experiment: Experiment, fraction: float) -> Experiment:
-        """The first `fraction` of the record (at least `min_samples` samples)."""
+    def samples(self, experiment: Experiment, fraction: float) -> int:
+        """How many leading samples of `experiment` the stage `fraction` fits (at least
+        `min_samples`, at most the whole record)."""
         count = experiment.ts.shape[0]
-        keep = min(count, max(self.min_samples, math.ceil(fraction * (count - 1)) + 1))
-        weights = None if experiment.weights is None else experiment.weights[:keep]
-        return Experiment(experiment.ts[:keep], experiment.observations[:keep], experiment.q0,
-                          experiment.u0, experiment.inputs, weights)
+        return min(count, max(self.min_samples, math.ceil(fraction * (count - 1)) + 1))

@@ -373,10 +373,11 @@ def _by_continuation(continuation, dynamics, experiments, params, options):
                      "shooting": None}
     guess = params
     for fraction in continuation.fractions:
-        stage = [continuation.truncated(e, fraction) for e in experiments]
+        horizons = [continuation.samples(e, fraction) for e in experiments]
         with warnings.catch_warnings():  # a stage is a starting point, converged or not
             warnings.simplefilter("ignore", RuntimeWarning)
-            result = _fit_directly(dynamics, stage, guess, **stage_options)
+            result = _fit_directly(dynamics, experiments, guess, horizons=horizons,
+                                   **stage_options)
         guess = result.params
         if options["fit_initial_states"]:
             experiments = [Experiment(e.ts, e.observations, np.asarray(q0), np.asarray(u0),
@@ -389,13 +390,14 @@ def _by_continuation(continuation, dynamics, experiments, params, options):
 def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation, observe,
                   fit_initial_states, shooting, optimiser, max_steps, rtol, atol, adjoint,
                   simulate_options, uncertainty, identifiability_tolerance, progress,
-                  callback, checkpoint, checkpoint_every):
-    """One fit from `params` (`fit` without globalisation)."""
+                  callback, checkpoint, checkpoint_every, horizons=None):
+    """One fit from `params` (`fit` without globalisation); `horizons` as in
+    `group_experiments`."""
     start_time = time.perf_counter()
     problem, latent, solver, fn, options, identifiability_tolerance = _setup(
         dynamics, experiments, params, filter_spec, parametrisation, observe,
         fit_initial_states, shooting, optimiser, rtol, atol, adjoint, simulate_options,
-        identifiability_tolerance)
+        identifiability_tolerance, horizons)
     state = _init(solver, fn, latent, problem, options)
     iteration, history = 0, []
     step = _compiled_step(solver, fn)
@@ -456,7 +458,7 @@ def _warn_unconverged(max_steps, history):
 
 def _setup(dynamics, experiments, params, filter_spec, parametrisation, observe,
            fit_initial_states, shooting, optimiser, rtol, atol, adjoint, simulate_options,
-           identifiability_tolerance):
+           identifiability_tolerance, horizons=None):
     """(the problem, the latent starting point, the optimistix solver, the function it
     minimises, its options, the identifiability tolerance), after checking the arguments."""
     if not experiments or not all(isinstance(e, Experiment) for e in experiments):
@@ -481,7 +483,7 @@ def _setup(dynamics, experiments, params, filter_spec, parametrisation, observe,
     options = {"jac": "fwd" if isinstance(adjoint, diffrax.ForwardMode) else "bwd"}
     problem, latent = _problem(dynamics, experiments, params, dtype, filter_spec,
                                parametrisation, observe, fit_initial_states, shooting,
-                               simulate_options, adjoint)
+                               simulate_options, adjoint, horizons)
     fn = scalar_loss
     if least_squares:
         fn = (least_squares_residuals_forward if options["jac"] == "fwd"
@@ -506,7 +508,7 @@ def _solver(optimiser, rtol, atol):
 
 
 def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation, observe,
-             fit_initial_states, shooting, simulate_options, adjoint):
+             fit_initial_states, shooting, simulate_options, adjoint, horizons=None):
     """The `TrajectoryMatching` problem (in precision `dtype`) and the latent starting
     point."""
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)
@@ -531,7 +533,7 @@ def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation,
                                  "array.")
             specs.append(spec)
             z_params.append(spec.to_latent(leaf, name))
-    groups = group_experiments(experiments, dtype)
+    groups = group_experiments(experiments, dtype, horizons)
     problem = TrajectoryMatching(
         dynamics=dynamics, groups=groups, frozen=frozen, treedef=treedef,
         trained=trained_flags, parametrisations=tuple(specs),

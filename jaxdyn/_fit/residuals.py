@@ -49,14 +49,21 @@ def _as_data(x, dtype):
     return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
 
 
-def group_experiments(experiments, dtype) -> tuple[ExperimentGroup, ...]:
-    """Group experiments by shape, in order of first appearance."""
+def group_experiments(experiments, dtype, horizons=None) -> tuple[ExperimentGroup, ...]:
+    """Group experiments by shape, in order of first appearance.
+
+    `horizons`: None, or per experiment the number of leading samples fitted (a stage of a
+    horizon continuation). The later samples keep their places, at the last fitted time and
+    with weight 0: the simulation ends at that time, their residuals are 0, and the problem
+    has the whole records' shapes, so that it shares their compiled programs."""
+    horizons = [None] * len(experiments) if horizons is None else horizons
     keys = {}
     for i, experiment in enumerate(experiments):
         keys.setdefault(_shape_key(experiment), []).append(i)
     groups = []
     for indices in keys.values():
         members = [experiments[i] for i in indices]
+        sampled = [_sampled(experiments[i], horizons[i]) for i in indices]
 
         def stack(get):
             return jnp.asarray(np.stack([get(e) for e in members]), dtype)
@@ -70,14 +77,23 @@ def group_experiments(experiments, dtype) -> tuple[ExperimentGroup, ...]:
                 *[e.inputs for e in members])
         groups.append(ExperimentGroup(
             indices=tuple(indices),
-            ts=stack(lambda e: e.ts),
+            ts=jnp.asarray(np.stack([ts for ts, _ in sampled]), dtype),
             observations=stack(lambda e: e.observations),
-            sqrt_weights=stack(lambda e: np.ones_like(e.observations) if e.weights is None
-                               else np.sqrt(e.weights)),
+            sqrt_weights=jnp.asarray(np.stack([np.sqrt(w) for _, w in sampled]), dtype),
             q0=stack(lambda e: e.q0),
             u0=stack(lambda e: e.u0),
             inputs=inputs))
     return tuple(groups)
+
+
+def _sampled(experiment: Experiment, horizon: int | None):
+    """(ts, weights) of `experiment` fitted over its first `horizon` samples (all if None)."""
+    weights = (np.ones_like(experiment.observations) if experiment.weights is None
+               else np.array(experiment.weights))
+    if horizon is None:
+        return experiment.ts, weights
+    weights[horizon:] = 0.0
+    return np.minimum(experiment.ts, experiment.ts[horizon - 1]), weights
 
 
 class TrajectoryMatching(eqx.Module):
