@@ -59,6 +59,7 @@ from ._fit.fit import (
     IdentifiabilityWarning as IdentifiabilityWarning,
     LackOfFitWarning as LackOfFitWarning,
     fit as fit,
+    fit_batch as fit_batch,
 )
 from ._fit.torques import (
     InertialFit as InertialFit,

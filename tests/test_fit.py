@@ -230,6 +230,47 @@ def test_multi_start_equals_the_best_of_the_separate_fits():
     assert sum(result.loss < 1.01 * best.loss for result in separate) == 1  # one start found it
 
 
+def test_a_batch_of_systems_equals_their_separate_fits():
+    """Four oscillators of one model, each with its own stiffness and damping (data from
+    SciPy, its own noise), fitted at once by `fit_batch`: each result is the system's own
+    `fit` to round-off and holds that system's truth within its confidence intervals; one
+    system's guess whose simulation fails is named."""
+    truths = [(4.0, 0.3), (2.0, 0.5), (6.0, 0.2), (3.0, 0.8)]
+    systems, guesses = [], []
+    for i, (k, c) in enumerate(truths):
+        ts = np.linspace(0.0, 10.0, 101)
+        y = solve_ivp(lambda t, y, k=k, c=c: [y[1], -k * y[0] - c * y[1]], (0.0, 10.0),
+                      [1.0, 0.0], t_eval=ts, rtol=1e-12, atol=1e-12, method="DOP853").y[0]
+        noisy = y + SIGMA * np.random.default_rng(10 + i).standard_normal(ts.size)
+        systems.append(jaxdyn.Experiment(ts, noisy, q0=[1.0], u0=[0.0], weights=SIGMA**-2))
+        guesses.append({"m": 1.0, "k": 0.8 * k, "c": 1.5 * c})
+    options = dict(filter_spec=OSCILLATOR_TRAINED, progress=False)
+    batch = jaxdyn.fit_batch(OSCILLATOR, systems, guesses, **options)
+    for result, experiment, guess, (k, c) in zip(batch, systems, guesses, truths):
+        alone = jaxdyn.fit(OSCILLATOR, experiment, guess, **options)
+        assert result.converged and result.explains_data
+        # Vectorised arithmetic rounds differently: the optimiser's relative-change test may
+        # be met one step apart, at the same optimum.
+        assert abs(result.num_steps - alone.num_steps) <= 1
+        for key, truth in (("k", k), ("c", c)):
+            np.testing.assert_allclose(float(result.params[key]), float(alone.params[key]),
+                                       rtol=1e-9)
+            np.testing.assert_allclose(float(result.standard_errors[key]),
+                                       float(alone.standard_errors[key]), rtol=1e-6)
+            low, high = result.confidence_intervals(0.999)[f"p['{key}']"]
+            assert low < truth < high, key
+        np.testing.assert_allclose(result.loss, alone.loss, rtol=1e-9)
+
+    with pytest.raises(ValueError, match="one entry per system: got 4 and 3"):
+        jaxdyn.fit_batch(OSCILLATOR, systems, guesses[:3], **options)
+    with pytest.raises(ValueError, match="System 1's experiments or parameters differ"):
+        jaxdyn.fit_batch(OSCILLATOR, [systems[0], oscillator_experiment(num=51)],
+                         guesses[:2], **options)
+    failing = {"m": 0.0, "k": 3.0, "c": 0.5}  # a massless system: M singular, no motion
+    with pytest.raises(ValueError, match=r"Systems \[1\]: The simulations at the initial"):
+        jaxdyn.fit_batch(OSCILLATOR, systems[:2], [guesses[0], failing], **options)
+
+
 def test_horizon_continuation_checks_its_fractions():
     with pytest.raises(ValueError, match="increasing numbers between 0 and 1"):
         jaxdyn.HorizonContinuation(fractions=(0.5, 0.25))
