@@ -330,6 +330,30 @@ def test_standard_errors_match_the_spread_over_noise_realisations(oscillator_fit
         spread, predicted)
 
 
+def test_simulate_options_reach_the_simulations(oscillator_fit):
+    """Options for the simulations inside the fit, the step budget among them (a Python
+    int that `simulate` needs when it compiles): the same tolerances give the same fit."""
+    result = fit_oscillator(oscillator_experiment(), uncertainty=False, simulate_options={
+        "max_steps": 10_000, "rtol": 1e-8, "atol": 1e-8})
+    for key in ("k", "c"):
+        np.testing.assert_allclose(float(result.params[key]),
+                                   float(oscillator_fit.params[key]), rtol=1e-12)
+
+
+def test_long_records_are_simulated_one_after_another(monkeypatch, oscillator_fit):
+    """Records longer than `LONG_RECORD` samples are simulated by `lax.map` rather than
+    `vmap` (whose saving cost grows as steps × samples): the same fit."""
+    monkeypatch.setattr(jaxdyn._fit.residuals, "LONG_RECORD", 100)
+    # Another observation function (the default's equal) makes a new program, traced with
+    # the patched limit, rather than the fixture's compiled one.
+    result = fit_oscillator(oscillator_experiment(), observe=lambda t, q, u, p: q)
+    for key in ("k", "c"):
+        np.testing.assert_allclose(float(result.params[key]),
+                                   float(oscillator_fit.params[key]), rtol=1e-12)
+        np.testing.assert_allclose(float(result.standard_errors[key]),
+                                   float(oscillator_fit.standard_errors[key]), rtol=1e-9)
+
+
 def test_resumed_fit_ends_at_the_same_parameters(tmp_path, oscillator_fit):
     path = tmp_path / "fit.eqx"
     experiment = oscillator_experiment()

@@ -690,7 +690,7 @@ def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation,
         trained=trained_flags, parametrisations=tuple(specs),
         observe=observe_coordinates if observe is None else observe,
         shooting=shooting, fit_initial_states=fit_initial_states,
-        simulate_options=numbers_as_arrays(_simulate_options(simulate_options, dtype), dtype),
+        simulate_options=_simulate_options(simulate_options, dtype),
         adjoint=adjoint)
     states = tuple((g.q0, g.u0) for g in groups) if fit_initial_states else None
     latent = {"params": z_params, "states": states, "nodes": None}
@@ -725,7 +725,10 @@ def _simulate_options(given, dtype):
     given = dict(given or {})
     if "stepsize_controller" in given:  # it carries its own tolerances
         del options["rtol"], options["atol"]
-    return {**options, **given}
+    # Tolerances and step sizes as traced arrays (another value reuses the compiled
+    # program); integers (the step budget) stay Python numbers, fixed when compiling.
+    return {key: numbers_as_arrays(value, dtype) if isinstance(value, float) else value
+            for key, value in {**options, **given}.items()}
 
 
 def _initial_nodes(problem, latent, experiments):
