@@ -199,8 +199,8 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
         for k in range(count):
             members = jax.tree_util.tree_map(lambda x: x[k * chunk:(k + 1) * chunk], padded)
             with gc_paused():  # the first chunk traces and compiles
-                piece = solve_chunk(setup, _place(members, mesh, _BATCH),
-                                     _place(shared, mesh, PartitionSpec()))
+                piece = solve_chunk(setup, place_on_mesh(members, mesh, _BATCH),
+                                     place_on_mesh(shared, mesh, PartitionSpec()))
             if in_host:
                 piece = _to_host(piece)
             if throw:
@@ -356,9 +356,9 @@ def _pad(batched, total):
     return jax.tree_util.tree_map(pad, batched)
 
 
-def _place(tree, mesh, spec):
-    """Host values as global arrays laid out on the mesh (each process supplies the parts
-    its devices hold, from the same full value)."""
+def place_on_mesh(tree, mesh, spec):
+    """Host (or device) values as global arrays laid out on the mesh (each process supplies
+    the parts its devices hold, from the same full value)."""
     sharding = NamedSharding(mesh, spec)
 
     def place(x):

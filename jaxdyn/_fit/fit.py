@@ -20,8 +20,10 @@ import numpy as np
 import optax
 import optimistix as optx
 import tqdm
+from jax.sharding import Mesh, PartitionSpec
 
 from .._dynamics import AbstractDynamics
+from .._batch import place_on_mesh
 from .._errors import _where
 from .._state import numbers_as_arrays
 from .adequacy import adequacy, explained_loss
@@ -334,7 +336,8 @@ def _stacked(trees):
                                   *trees)
 
 
-def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enough=None):
+def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enough=None,
+                 devices=None):
     """Fits from every setup at once, one vmapped step for all, each member stopping where
     its own optimiser's tolerance is met or its iterate stops being finite (it keeps its last
     finite iterate, its loss infinite). `shared_problem`: every member fits the first setup's
@@ -343,10 +346,20 @@ def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enou
     the initial guess is not finite, returns the message of the ValueError to raise, or
     None. Returns the stacked latents and optimiser states, the final
     losses, which members converged, the loss of every member at every step, and each
-    member's number of steps."""
+    member's number of steps. The members are sharded over `devices` (default: all), padded
+    to a multiple of their number with copies of the first, which start stopped."""
     problem, _, solver, fn, solver_options, _ = setups[0]
+    count = len(setups)
+    mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
+    width = mesh.devices.size
+    setups = setups + [setups[0]] * (-count % width)
     problems = problem if shared_problem else _stacked([s[0] for s in setups])
     latents = _stacked([s[1] for s in setups])
+    if width > 1:
+        latents = _on_mesh(latents, mesh, PartitionSpec("batch"))
+        problems = _on_mesh(problems, mesh, PartitionSpec(
+            *(() if shared_problem else ("batch",))))
+        solver_options = _on_mesh(solver_options, mesh, PartitionSpec())
     mapped = eqx.if_array(0)
     states = eqx.filter_vmap(lambda z, problem: _init(solver, fn, z, problem, solver_options),
                              in_axes=(mapped, None if shared_problem else mapped))(
@@ -354,9 +367,9 @@ def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enou
     solver_arrays, solver_static = eqx.partition(solver, eqx.is_array)
     step = functools.partial(_compiled_batched_step_for(solver_static, fn, shared_problem),
                              solver_arrays)
-    count, max_steps = len(setups), options["max_steps"]
-    done, finite = np.zeros(count, bool), np.ones(count, bool)
-    losses, steps, history = np.full(count, np.inf), np.zeros(count, int), []
+    max_steps = options["max_steps"]
+    done, finite = np.arange(len(setups)) >= count, np.ones(len(setups), bool)
+    losses, steps, history = np.full(len(setups), np.inf), np.zeros(len(setups), int), []
     progress = options["progress"]
     if progress is None:
         progress = sys.stderr.isatty() or "ipykernel" in sys.modules
@@ -380,7 +393,16 @@ def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enou
             bar.set_postfix(loss=f"{np.min(losses):.4g}", done=f"{int(done.sum())}")
             if enough is not None and enough(losses, done):
                 break
-    return latents, states, losses, done & finite, history, steps
+    real = lambda x: x[:count] if eqx.is_array(x) else x  # noqa: E731
+    latents, states = jax.tree_util.tree_map(real, (latents, states))
+    return (latents, states, losses[:count], (done & finite)[:count],
+            [h[:count] for h in history], steps[:count])
+
+
+def _on_mesh(tree, mesh, spec):
+    """The arrays of `tree` laid out on the mesh; its other leaves unchanged."""
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(place_on_mesh(arrays, mesh, spec), rest)
 
 
 @functools.lru_cache(maxsize=32)
@@ -428,6 +450,7 @@ def fit_batch(
     identifiability_tolerance: float | None = None,
     progress: bool | None = None,
     globalisation: bool | None = None,
+    devices=None,
 ) -> list[FitResult]:
     """Fit B independent systems of one model at once, each to its own experiments with its
     own parameters: B separate `jaxdyn.fit`s run as one vmapped computation (one compiled
@@ -447,6 +470,8 @@ def fit_batch(
       runs out of steps) where the model does not explain its data is fitted again by
       `jaxdyn.HorizonContinuation()` (one system after another, one compiled program for
       all), the lower loss kept. False: the batched fits only.
+    - `devices`: the devices the systems are sharded over (`jax.sharding`; the batch padded
+      to a multiple of their number); default `jax.devices()`, all of them.
     - The other arguments are those of `jaxdyn.fit`, the same for every system.
 
     **Returns:** a list of B `jaxdyn.FitResult`s, each what `jaxdyn.fit` would return for that
@@ -482,6 +507,7 @@ def fit_batch(
                              "parameter structure.")
     latents, states, _, done, history, steps = _run_batched(
         setups, options, shared_problem=False, desc=f"fit batch ×{len(setups)}",
+        devices=devices,
         initial_failure=lambda failed: f"Systems {failed}: {INITIAL_FAILURE}" if failed
         else None)
     latents, states = jax.device_get((latents, states))  # members read on the host
