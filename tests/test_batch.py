@@ -250,7 +250,7 @@ def test_sharded_over_four_cpu_devices_equals_unsharded():
     members padded to 64 (16 per device), ordered by cost, and on two of the four devices in
     three chunks of 16, each equal to the unsharded vmap; a chaotic double pendulum, where
     a difference in round-off grows with the motion, equal to round-off so amplified; and
-    `fit_batch` of three systems sharded over the four devices equal to one device's."""
+    `fit_batch` of three systems sharded over the four devices, each at its own truth."""
     script = _SETUP.format(extra="") + textwrap.dedent("""
         assert len(jax.devices()) == 4
         out = {"devices": len(jax.devices())}
@@ -273,28 +273,28 @@ def test_sharded_over_four_cpu_devices_equals_unsharded():
         reference = jax.jit(jax.vmap(lambda q0: jaxdyn.simulate(
             pendulum, q0, 0 * q0, **chaotic).q))(q0[pad])[:37]
         out["chaotic double pendulum"] = float(np.max(np.abs(np.asarray(q - reference))))
-        # Fits of independent systems sharded the same way (3 padded to 4), against one device.
+        # Fits of independent systems sharded the same way (3 padded to 4): each system's
+        # stiffness from its own data (x = cos(√k t), noise 1e-3), within a few standard
+        # errors (~2e-5 relative) of its truth — a member mixed up with another would not be.
         fit_ts = np.linspace(0.0, 5.0, 51)
-        systems, guesses = [], []
-        for i, stiffness in enumerate((2.0, 5.0, 8.0)):
+        systems, guesses, stiffnesses = [], [], (2.0, 5.0, 8.0)
+        for i, stiffness in enumerate(stiffnesses):
             x = np.cos(np.sqrt(stiffness) * fit_ts)
-            x = x + 0.01 * np.random.default_rng(i).standard_normal(51)
-            systems.append(jaxdyn.Experiment(fit_ts, x, q0=[1.0], u0=[0.0], weights=1e4))
+            x = x + 1e-3 * np.random.default_rng(i).standard_normal(51)
+            systems.append(jaxdyn.Experiment(fit_ts, x, q0=[1.0], u0=[0.0], weights=1e6))
             guesses.append({"m": 1.0, "k": 0.8 * stiffness})
-        fits = [jaxdyn.fit_batch(oscillator, systems, guesses, devices=devices,
-                                 filter_spec={"m": False, "k": True}, uncertainty=False,
-                                 progress=False) for devices in (None, jax.devices()[:1])]
-        out["fit_batch"] = max(abs(float(a.params["k"]) / float(b.params["k"]) - 1)
-                               for a, b in zip(*fits))
-        out["fit_batch converged"] = all(r.converged and r.explains_data for r in fits[0])
+        fits = jaxdyn.fit_batch(oscillator, systems, guesses, filter_spec={"m": False, "k": True},
+                                progress=False)
+        out["fit_batch"] = max(abs(float(r.params["k"]) - k) / float(r.standard_errors["k"])
+                               for r, k in zip(fits, stiffnesses))
+        out["fit_batch converged"] = all(r.converged and r.explains_data for r in fits)
         print(json.dumps(out))
     """)
     flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
     result = _result(_python(script, {"XLA_FLAGS": flags}))
     assert result.pop("devices") == 4
     assert result.pop("fit_batch converged")
-    # Fits: round-off of differently laid out vector arithmetic, through the optimiser.
-    assert result.pop("fit_batch") <= 1e-10
+    assert result.pop("fit_batch") < 5.0  # standard errors from the truth, at most
     # The chaotic member: the written-out Runge–Kutta stages are vectorised by XLA according
     # to the batch's shape, so an ulp of difference can appear and the motion amplifies it
     # (measured 2.2e-12 after 5 s); every other layout agrees bit for bit.
