@@ -346,11 +346,13 @@ def _run_batched(setups, options, *, shared_problem, desc, initial_failure, enou
     the initial guess is not finite, returns the message of the ValueError to raise, or
     None. Returns the stacked latents and optimiser states, the final
     losses, which members converged, the loss of every member at every step, and each
-    member's number of steps. The members are sharded over `devices` (default: all), padded
-    to a multiple of their number with copies of the first, which start stopped."""
+    member's number of steps. The members are sharded over `devices` (default: this
+    process's, whose results it can read), padded to a multiple of their number with copies
+    of the first, which start stopped."""
     problem, _, solver, fn, solver_options, _ = setups[0]
     count = len(setups)
-    mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))
+    mesh = Mesh(np.asarray(jax.local_devices() if devices is None else list(devices)),
+                ("batch",))
     width = mesh.devices.size
     setups = setups + [setups[0]] * (-count % width)
     problems = problem if shared_problem else _stacked([s[0] for s in setups])
@@ -471,7 +473,7 @@ def fit_batch(
       `jaxdyn.HorizonContinuation()` (one system after another, one compiled program for
       all), the lower loss kept. False: the batched fits only.
     - `devices`: the devices the systems are sharded over (`jax.sharding`; the batch padded
-      to a multiple of their number); default `jax.devices()`, all of them.
+      to a multiple of their number), all of this process; default `jax.local_devices()`.
     - The other arguments are those of `jaxdyn.fit`, the same for every system.
 
     **Returns:** a list of B `jaxdyn.FitResult`s, each what `jaxdyn.fit` would return for that

@@ -13,7 +13,7 @@ class MultiStart(eqx.Module):
     leaf multiplied by its own factor drawn log-uniformly from [1/`spread`, `spread`] (one
     factor per leaf, so that an inertia tensor or a vector keeps its shape and sign; initial
     states are not perturbed). Every start is a separate fit with the same optimiser and
-    settings; they run as one vmapped computation (sharded over all devices), each start
+    settings; they run as one vmapped computation (sharded over this process's devices), each start
     stopping where its own optimiser's tolerance is met, so that the result equals the best
     of the separate fits.
 
