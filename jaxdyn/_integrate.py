@@ -116,7 +116,14 @@ def simulate(
     throw: bool = True,
     inputs=None,
 ) -> Solution:
-    """Integrate q̇ = K u, M u̇ = f (+ B r) from (t0, q0, u0) to t1.
+    r"""Integrate q̇ = K u, M u̇ = f (+ B r) from (t0, q0, u0) to t1:
+
+    $$\dot q = K(t, q)\, u, \qquad M(t, q)\, \dot u = f(t, q, u) \;(+\, B(q)\, r),
+      \qquad q(t_0) = q_0, \quad u(t_0) = u_0,$$
+
+    with $K$ the kinematic map from speeds to coordinate rates (the identity for a
+    `Lagrangian`, whose speeds are $\dot q$), $M$ the mass matrix, $f$ the forcing and $B r$
+    the inputs of a `jaxdyn.Controlled` system.
 
     **Arguments:**
 

@@ -249,9 +249,10 @@ def test_a_batch_of_systems_equals_their_separate_fits():
     for result, experiment, guess, (k, c) in zip(batch, systems, guesses, truths):
         alone = jaxdyn.fit(OSCILLATOR, experiment, guess, **options)
         assert result.converged and result.explains_data
-        # Vectorised arithmetic rounds differently: the optimiser's relative-change test may
-        # be met one step apart, at the same optimum.
-        assert abs(result.num_steps - alone.num_steps) <= 1
+        # Vectorised arithmetic rounds differently: at the optimum, trial steps whose
+        # predicted reduction is round-off are rejected a different number of times before
+        # the relative-change test is met; the steps that moved the iterate agree.
+        assert abs(result.num_accepted_steps - alone.num_accepted_steps) <= 1
         for key, truth in (("k", k), ("c", c)):
             np.testing.assert_allclose(float(result.params[key]), float(alone.params[key]),
                                        rtol=1e-9)

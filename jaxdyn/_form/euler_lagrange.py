@@ -22,13 +22,17 @@ from .._system.base import AbstractMultibody
 class Lagrangian(AbstractDynamics):
     r"""A holonomic system in independent coordinates, from its energies.
 
-    Lagrange's equations of the second kind, with L = T − V,
+    Lagrange's equations of the second kind, with $L = T - V$,
 
-        d/dt ∂L/∂q̇ − ∂L/∂q = Q − ∂D/∂q̇,
+    $$\frac{d}{dt}\frac{\partial L}{\partial \dot q} - \frac{\partial L}{\partial q}
+      = Q - \frac{\partial D}{\partial \dot q},$$
 
-    are expanded as M q̈ = f with
+    are expanded as $M \ddot q = f$ with
 
-        M = ∂²L/∂q̇²,    f = Q − ∂D/∂q̇ + ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t.
+    $$M = \frac{\partial^2 L}{\partial \dot q^2}, \qquad
+      f = Q - \frac{\partial D}{\partial \dot q} + \frac{\partial L}{\partial q}
+      - \frac{\partial^2 L}{\partial \dot q\, \partial q}\, \dot q
+      - \frac{\partial^2 L}{\partial \dot q\, \partial t}.$$
 
     One forward pass linearises (∂L/∂q̇, ∂L/∂q) (reverse-mode gradients); M is that linear map
     applied to the unit speeds (forward-over-reverse), and the velocity coupling and time terms

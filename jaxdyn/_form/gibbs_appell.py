@@ -19,11 +19,13 @@ ACTIVE_ARGS = ("q", "u", "p")
 class GibbsAppell(AbstractDynamics):
     r"""Equations of motion from a Gibbs function ("energy of accelerations").
 
-        ∂S/∂u̇_r = Π_r,   r = 1 … m,
+    $$\frac{\partial S}{\partial \dot u_r} = \Pi_r, \qquad r = 1, \dots, m,$$
 
-    with S(q, u, u̇) = ½ Σ m a·a (+ ½ α·Iα + α·(ω × Iω) for rigid bodies) quadratic in u̇, so
+    with $S(q, u, \dot u) = \tfrac12 \sum m\, a \cdot a$ ($+ \tfrac12 \alpha \cdot I \alpha
+    + \alpha \cdot (\omega \times I \omega)$ for rigid bodies) quadratic in $\dot u$, so
 
-        M = ∂²S/∂u̇² (its Hessian in the accelerations),   f = Π − ∂S/∂u̇ |_{u̇=0}.
+    $$M = \frac{\partial^2 S}{\partial \dot u^2} \;\text{(its Hessian in the accelerations)},
+      \qquad f = \Pi - \left.\frac{\partial S}{\partial \dot u}\right|_{\dot u = 0}.$$
 
     M is formed forward-over-reverse at u̇ = 0, where the gradient is also the bias.
 

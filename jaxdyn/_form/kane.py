@@ -12,14 +12,16 @@ from .._system.base import AbstractMultibody
 class Kane(AbstractDynamics):
     r"""Kane's method on a description of bodies (`MultibodySystem`, `RigidBodyTree`):
 
-        F_r + F*_r = 0,   r = 1 … m,
-        F_r  = Σ F·v_r + Σ τ·ω_r (and −∂V/∂q, −∂D/∂q̇ along the speeds),
-        F*_r = −Σ m a·v_r − Σ (I α + ω × I ω)·ω_r,
+    $$F_r + F^*_r = 0, \qquad r = 1, \dots, m,$$
+    $$F_r = \sum F \cdot v_r + \sum \tau \cdot \omega_r \quad \text{(and } -\partial V/\partial q,
+      \ -\partial D/\partial \dot q \text{ along the speeds)},$$
+    $$F^*_r = -\sum m\, a \cdot v_r - \sum (I \alpha + \omega \times I \omega) \cdot \omega_r,$$
 
     with partial velocities v_r = ∂v/∂u_r, ω_r = ∂ω/∂u_r (Jacobians of the kinematics in the
     speeds). F*_r is affine in u̇ with coefficients given by the partial velocities, so
 
-        M_rs = Σ m v_r·v_s + ω_r·I ω_s,   f = F + F*|_{u̇=0}.
+    $$M_{rs} = \sum m\, v_r \cdot v_s + \omega_r \cdot I \omega_s, \qquad
+      f = F + F^*\big|_{\dot u = 0}.$$
 
     **Arguments:**
 
