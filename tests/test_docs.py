@@ -148,6 +148,9 @@ for q0 in ((0.5, -0.3), (-0.8, 0.4)):
     noisy = angles + sigma * np.random.default_rng(0).standard_normal(angles.shape)
     recordings.append((ts, noisy, q0, (0.0, 0.0)))
 """,
+    "solver=jaxdyn.VariationalIntegrator()": """
+pendulum, p, q0, qd0 = quickstart  # the pendulum of the README's first block
+""",
     "q0s = np.stack([angles, angles / 2], axis=1)": """
 def T(q, qd, p):
     v1 = p["l1"] * qd[0] * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])])
@@ -186,4 +189,6 @@ def test_the_guides_code_runs(monkeypatch):
         except Exception as error:
             raise AssertionError(f"README block failed:\n{block}") from error
         run += 1
+        if run == 1:
+            namespace["quickstart"] = tuple(namespace[k] for k in ("pendulum", "p", "q0", "qd0"))
     assert run == len(blocks) - 1

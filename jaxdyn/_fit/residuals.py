@@ -149,20 +149,9 @@ class TrajectoryMatching(eqx.Module):
         """(q, u) at the times ts from (q0, u0) at ts[0]: one simulation (failures give
         infinite states, so that an optimiser rejects the trial point)."""
         p = params if inputs is None else (params, inputs)
-        options = dict(self.simulate_options)
-        solver = options.get("solver")
-        if (isinstance(self.adjoint, diffrax.ForwardMode)
-                and isinstance(solver, diffrax.AbstractRungeKutta) and solver.scan_kind is None):
-            # The stages as diffrax's loop ("lax", which diffrax itself picks under forward
-            # mode), not written out as `simulate` writes them for small equations: a fit
-            # differentiates its simulations in forward mode for every unknown and vmaps
-            # them over experiments, and written-out stages put the equations into that
-            # program once per stage. Torque-driven double pendulum, three experiments: first
-            # fit 44.5 → 23.8 s; a later fit 0.89 → 1.28 s.
-            options["solver"] = eqx.tree_at(lambda s: s.scan_kind, solver, "lax",
-                                            is_leaf=lambda x: x is None)
         solution = simulate(self.dynamics, q0, u0, p, t0=ts[0], t1=ts[-1], ts=ts,
-                            save=("q", "u"), adjoint=self.adjoint, throw=False, **options)
+                            save=("q", "u"), adjoint=self.adjoint, throw=False,
+                            **self.simulate_options)
         return solution.q, solution.u
 
     def _segments(self, ts, params, q0, u0, inputs, nodes):
