@@ -78,7 +78,8 @@ def chains():
                                for k, f in candidates.items()}, number=10)
         for name, fn in candidates.items():
             print(f"   N = {n:2d} {name:28s} loop {1e6 * loop[name] / iterations:7.2f} µs "
-                  f"({loop[name] / loop['hand-written']:4.2f}×)  vmap {1e3 * vmapped[name]:6.2f} ms "
+                  f"({loop[name] / loop['hand-written']:4.2f}×)  "
+                  f"vmap {1e3 * vmapped[name]:6.2f} ms "
                   f"({vmapped[name] / vmapped['hand-written']:4.2f}×)  kernels "
                   f"{kernels(fn, args):3d}", flush=True)
 

@@ -75,7 +75,8 @@ def main(sizes=(2, 5, 10, 20)):
         key_q, key_u = jax.random.split(jax.random.PRNGKey(n))
         q, qd = jax.random.normal(key_q, (n,)), jax.random.normal(key_u, (n,))
         baseline = hand_written(n)
-        formulations = [jaxdyn.Lagrangian.from_system(system), jaxdyn.GibbsAppell.from_system(system),
+        formulations = [jaxdyn.Lagrangian.from_system(system),
+                        jaxdyn.GibbsAppell.from_system(system),
                         jaxdyn.Kane.from_system(system)]
         reference = baseline(t, q, qd, None)
         for dynamics in formulations:  # all must solve the same equations before timing

@@ -18,18 +18,19 @@ Strategies: `globalisation=False` (one Levenberg–Marquardt fit from the guess)
 `jaxdyn.HorizonContinuation()` from the start, and `jaxdyn.MultiStart(8)` (the guess and seven
 points at 0.5–2× it, fitted at once); and multiple shooting in 10 segments (the state is not
 observed, so the nodes start on a simulation: at the guess, or with continuation at the
-short horizons' optimum) directly, by default and with continuation. A fit succeeds when k and l₀ are within 1 % of
-the truth (the noise allows ~0.1 %). "Honest" counts the failures that report
+short horizons' optimum) directly, by default and with continuation. A fit succeeds when k and
+l₀ are within 1 % of the truth (the noise allows ~0.1 %). "Honest" counts the failures that report
 `explains_data=False`.
 
 `--problem double-pendulum`: the torque-driven double pendulum of `bench_fit.py` (both angles
 observed with σ = 0.01, 101 samples over 5 s, data from SciPy): m1, m2, l1, l2 each from a
 log-uniform factor in [0.5, 2] of the truth; success: all four within 1 % (their standard
 errors are 0.1–0.5 %); the first three strategies (`MultiStart(8)` takes 15 s per fit
-here, 92 s where its starts crawl to `max_steps`: 4 starting points measured, all found). Times are wall times per fit after the first one; "first s" is the
-first fit of each strategy, in the order of the table in one process (its compilation, less
-what the strategies before it compiled: a continuation's stages keep the records' shapes and
-share the whole fit's compiled program).
+here, 92 s where its starts crawl to `max_steps`: 4 starting points measured, all found).
+Times are wall times per fit after the first one; "first s" is the first fit of each strategy,
+in the order of the table in one process (its compilation, less what the strategies before it
+compiled: a continuation's stages keep the records' shapes and share the whole fit's compiled
+program).
 """
 
 import argparse

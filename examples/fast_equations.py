@@ -64,8 +64,8 @@ print(f"   first call (traces and compiles):   {1e3 * (time.perf_counter() - sta
 new_p = {"m": 1.1, "g": 9.81, "k": 20.0, "l0": 1.0}  # new values, same structure
 later = best_of(lambda: pendulum.accelerations(0.5, q + 0.1, qd, new_p), number=100)
 print(f"   later calls, new state and values: {1e6 * later:7.1f} µs")
-print(f"   agree with the hand-written equations: "
-      f"{float(jnp.max(jnp.abs(pendulum.accelerations(0.0, q, qd, p) - by_hand(0.0, q, qd, p)))):.1e}")
+gap = float(jnp.max(jnp.abs(pendulum.accelerations(0.0, q, qd, p) - by_hand(0.0, q, qd, p))))
+print(f"   agree with the hand-written equations: {gap:.1e}")
 
 print("\n2. inside your own compiled loop (symplectic Euler, 100 000 steps of 1 ms)")
 
@@ -91,7 +91,8 @@ for name, seconds in times.items():
     print(f"   {name:20s} {1e9 * seconds / 100_000:6.1f} ns per step   "
           f"({seconds / times['hand-written']:.2f}× hand-written)")
 final = {name: run(q, qd)[0] for name, run in loops.items()}
-print(f"   final states agree to {float(jnp.max(jnp.abs(final['jaxdyn, throw=False'] - final['hand-written']))):.1e}")
+print(f"   final states agree to "
+      f"{float(jnp.max(jnp.abs(final['jaxdyn, throw=False'] - final['hand-written']))):.1e}")
 jitted = jax.jit(pendulum.accelerations)  # a bound method can be jitted directly
 print(f"   jax.jit(pendulum.accelerations) → {jitted(0.0, q, qd, p)}")
 

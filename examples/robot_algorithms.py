@@ -131,7 +131,8 @@ tip = jax.vmap(lambda q: jaxdyn.frame_pose(robot, "gripper", q, p_true, point=to
 goal = jax.vmap(lambda t: target(t)[0])(ts_control)
 tracking = np.linalg.norm(np.asarray(tip - goal), axis=1)
 print(f"3. computed-torque tracking of a {radius} m circle: error {1e3 * tracking[-1]:.2e} mm "
-      f"after {2 * period:.0f} s (starting at rest on the circle; peak {1e3 * np.max(tracking):.2e} mm), "
+      f"after {2 * period:.0f} s (starting at rest on the circle; "
+      f"peak {1e3 * np.max(tracking):.2e} mm), "
       f"peak torque {np.max(np.abs(np.asarray(sol.inputs))):.1f} N·m")
 
 try:

@@ -214,7 +214,8 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
                 solution = jax.tree_util.tree_map(
                     lambda x: np.empty((size,) + x.shape[1:], x.dtype), piece)
             stop = min(size, (k + 1) * chunk)
-            for out, x in zip(jax.tree_util.tree_leaves(solution), jax.tree_util.tree_leaves(piece)):
+            for out, x in zip(jax.tree_util.tree_leaves(solution),
+                              jax.tree_util.tree_leaves(piece)):
                 out[k * chunk:stop] = x[:stop - k * chunk]
             del piece
     finally:

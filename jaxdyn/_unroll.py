@@ -206,8 +206,9 @@ def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = Tr
     """Evaluate a closed jaxpr element by element; returns object arrays of scalars, or with
     `emit=False` only the number of operations it would emit.
 
-    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value. Raises `_Fallback` when the program
-    has side effects, is too large to try, or emits more than `max_elements` operations.
+    Each element is a NumPy scalar (a constant known at trace time) or a 0-d JAX value. Raises
+    `_Fallback` when the program has side effects, is too large to try, or emits more than
+    `max_elements` operations.
     """
     jaxpr = _dead_code_eliminated(closed.jaxpr)
     if jaxpr.effects or _size(jaxpr) > max(MAX_TRIED, max_elements):

@@ -27,8 +27,9 @@ OSCILLATOR = jaxdyn.Lagrangian(kinetic=lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
                                potential=lambda q, p: 0.5 * p["k"] * q @ q)
 TS = np.linspace(0.0, 2.0, 9)
 # At 1e-9 the step-size controller's decisions (the number of steps) do not hinge on round-off,
-# so that batches laid out differently (sharded, chunked, padded) take the same steps. The closed form is met to 5e-8 (measured: Dopri8's interpolant
-# at the save times); a wrong batch layout would be wrong by O(1).
+# so that batches laid out differently (sharded, chunked, padded) take the same steps. The closed
+# form is met to 5e-8 (measured: Dopri8's interpolant at the save times); a wrong batch layout
+# would be wrong by O(1).
 OPTIONS = dict(t1=2.0, ts=TS, rtol=1e-9, atol=1e-9)
 CLOSED_FORM_ATOL = 2e-7
 

@@ -144,7 +144,8 @@ def test_bad_constraint_functions_are_named():
             0.0, np.ones(2), np.zeros(2))
     with pytest.raises(ValueError, match="needs holonomic and/or pfaffian"):
         jaxdyn.Constrained(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * jnp.sum(qd**2)))
-    with pytest.raises(ValueError, match="save names 'constraints', which Lagrangian does not record"):
+    with pytest.raises(ValueError,
+                       match="save names 'constraints', which Lagrangian does not record"):
         jaxdyn.simulate(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * jnp.sum(qd**2)),
                         np.ones(2), np.zeros(2), t1=1.0, save=("q", "constraints"))
 

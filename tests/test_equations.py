@@ -86,7 +86,8 @@ def _sleigh():
 @pytest.mark.parametrize("formulation", ["Lagrange", "Gibbs-Appell", "Kane"])
 def test_jit_of_a_bound_method_for_every_formulation(formulation):
     system, kinematic_map = _sleigh()
-    dynamics = {"Lagrange": None, "Gibbs-Appell": jaxdyn.GibbsAppell.from_system(system, kinematic_map),
+    dynamics = {"Lagrange": None,
+                "Gibbs-Appell": jaxdyn.GibbsAppell.from_system(system, kinematic_map),
                 "Kane": jaxdyn.Kane(system, kinematic_map)}[formulation]
     p = {"a": 0.3}
     if dynamics is None:  # holonomic version: the free planar body in (x, y, θ)

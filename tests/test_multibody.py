@@ -2,8 +2,8 @@
 
 Every check compares against something independent of the code under test: the other
 formulations (different derivative paths: ∂²T/∂q̇², the Hessian of the Gibbs function, partial
-velocities), closed forms and the textbook equations of worked examples 25.1–25.3, equations derived by
-sympy.physics.mechanics.KanesMethod inside the tests, Euler's equations written by hand,
+velocities), closed forms and the textbook equations of worked examples 25.1–25.3, equations
+derived by sympy.physics.mechanics.KanesMethod inside the tests, Euler's equations written by hand,
 conservation laws along simulated trajectories, and finite differences.
 """
 
@@ -616,7 +616,8 @@ def _loaded_chains():
 
 @functools.lru_cache(maxsize=None)
 def _three(system):
-    return {"lagrangian": jaxdyn.Lagrangian.from_system(system), "gibbs_appell": jaxdyn.GibbsAppell.from_system(system),
+    return {"lagrangian": jaxdyn.Lagrangian.from_system(system),
+            "gibbs_appell": jaxdyn.GibbsAppell.from_system(system),
             "kane": jaxdyn.Kane(system)}
 
 
@@ -652,7 +653,8 @@ def test_loads_on_chaplygin_sleigh(i):
     m, a, inertia, g_t = p["m"], p["a"], p["I"], p["g_t"]
     expected = [(p["F"] - m * g_t * np.sin(th)) / m + a * w**2,
                 (p["tau"] - m * g_t * a * np.cos(th) - m * a * v * w) / (inertia + m * a**2)]
-    for dyn in (jaxdyn.GibbsAppell.from_system(system, ref.kinematic_map), jaxdyn.Kane(system, ref.kinematic_map)):
+    for dyn in (jaxdyn.GibbsAppell.from_system(system, ref.kinematic_map),
+                jaxdyn.Kane(system, ref.kinematic_map)):
         assert_rel(_accelerations(dyn, q, u, p), expected, what=type(dyn).__name__)
 
 

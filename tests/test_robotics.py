@@ -164,7 +164,8 @@ def test_panda_against_pinocchio(panda):
 
 FLOATING_URDF = """<robot name="hopper">
   <link name="base"><inertial><origin xyz="0.02 -0.01 0.03" rpy="0.1 0.2 0.3"/><mass value="3.0"/>
-    <inertia ixx="0.05" ixy="0.002" ixz="-0.001" iyy="0.07" iyz="0.003" izz="0.09"/></inertial></link>
+    <inertia ixx="0.05" ixy="0.002" ixz="-0.001" iyy="0.07" iyz="0.003" izz="0.09"/>
+    </inertial></link>
   <link name="thigh"><inertial><origin xyz="0 0 -0.15" rpy="0 0 0"/><mass value="0.8"/>
     <inertia ixx="0.006" ixy="0" ixz="0" iyy="0.006" iyz="0" izz="0.001"/></inertial></link>
   <link name="shank"><inertial><origin xyz="0.01 0 -0.12" rpy="0 0.3 0"/><mass value="0.4"/>

@@ -138,8 +138,9 @@ def _solver_linearisation(state, z):
 
 def analyse(problem: TrajectoryMatching, z, tolerance: float, state=None):
     """(the Gauss–Newton `Uncertainty` of the fit at z (forward-mode Jacobian), per group the
-    predicted observations, ½‖r_obs‖², the residuals (r, r_obs)): one compiled evaluation, reusing the Jacobian of the
-    least-squares solver's last step when `state` (its final state) holds one."""
+    predicted observations, ½‖r_obs‖², the residuals (r, r_obs)): one compiled evaluation,
+    reusing the Jacobian of the least-squares solver's last step when `state` (its final state)
+    holds one."""
     linearised = None if state is None else _solver_linearisation(state, z)
     if linearised is None:
         *arrays, predictions = _linearisation(problem, z)

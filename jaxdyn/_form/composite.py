@@ -23,7 +23,6 @@ beyond the links' poses: on robots the whole mass matrix costs less than forming
 partial velocities (Kane's Σ Jᵀ I J).
 """
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 

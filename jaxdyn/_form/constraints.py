@@ -20,7 +20,8 @@ NOT_ON_CONSTRAINTS = (
     "Could not place the state on the constraints: after the Gauss–Newton iterations the "
     "holonomic constraints are still violated (|φ| above the tolerance). Likely causes: the "
     "constraints have no solution near the given q (a loop that cannot close with these "
-    "dimensions, or with the coordinates and speeds kept as given), a singular configuration where the constraint Jacobian loses rank, or a "
+    "dimensions, or with the coordinates and speeds kept as given), a singular configuration "
+    "where the constraint Jacobian loses rank, or a "
     "constraint function that is not differentiable there."
 )
 

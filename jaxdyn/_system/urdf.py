@@ -61,7 +61,8 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
     for joint in model.joints:
         if joint.child in parent_joint:
             raise ValueError(
-                f"Link {joint.child!r} is the child of two joints ({parent_joint[joint.child].name!r} "
+                f"Link {joint.child!r} is the child of two joints "
+                f"({parent_joint[joint.child].name!r} "
                 f"and {joint.name!r}): the file describes a closed loop, which a tree of joints "
                 "cannot express. Import the tree without one of them and close the loop with a "
                 "constraint."
