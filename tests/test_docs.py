@@ -44,8 +44,16 @@ def test_every_public_name_has_a_docstring_and_an_api_entry():
     assert not stray, f"API entries for names jaxdyn does not export: {stray}"
     for name in names:
         value = getattr(jaxdyn, name)
-        own = value.__doc__ if isinstance(value, (type, types.FunctionType,
-                                                  types.ModuleType)) else inspect.getdoc(value)
+        if isinstance(value, type):
+            # The class's own docstring: an equinox module (a dataclass) without one gets
+            # "Name(field: type, ...)" generated, which documents nothing.
+            own = value.__dict__.get("__doc__")
+            assert not (own or "").startswith(f"{value.__name__}("), \
+                f"jaxdyn.{name} has only the generated docstring {own!r}"
+        elif isinstance(value, (types.FunctionType, types.ModuleType)):
+            own = value.__doc__
+        else:  # an instance (RESULTS): its class's
+            own = inspect.getdoc(value)
         assert own and own.strip(), f"jaxdyn.{name} has no docstring"
 
 
