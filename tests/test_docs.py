@@ -1,7 +1,7 @@
 """The documentation site: it builds with warnings as errors (broken links, references and
 snippets fail the build), every public name has a docstring and an API entry, the API page of
 `simulate` holds its signature, its equations as math and working links, and the Python code
-of the guides (the README's sections, which the guides include) runs."""
+of the README and the guides runs."""
 
 import html.parser
 import inspect
@@ -124,12 +124,16 @@ def test_the_site_renders_notebooks_examples_and_benchmarks(site):
     examples = (site / "examples" / "index.html").read_text()
     for script in (ROOT / "examples").glob("*.py"):
         assert script.name in examples, script.name
+        # The figures a script writes are shown beside it (docs/figures holds a run's output).
+        for figure in set(re.findall(r'"(\w+\.png)"', script.read_text())):
+            assert f'src="../figures/{figure}"' in examples, f"{script.name}: {figure} not shown"
+            assert (site / "figures" / figure).exists(), figure
     benchmarks = (site / "benchmarks" / "index.html").read_text()
     assert "work_precision.png" in benchmarks
     assert (site / "benchmarks" / "work_precision.png").exists()
 
 
-# What the README's fragments take from their surroundings (a system defined earlier on the
+# What the guides' fragments take from their surroundings (a system defined earlier on the
 # page, data a user has): keyed by a line of the fragment, run before it.
 _CONTEXT = {
     "plant = jaxdyn.Controlled(jaxdyn.Lagrangian(T, V), input_map=[0])": """
@@ -175,27 +179,41 @@ q0, u0 = np.array([1.0, 0.5]), np.zeros(2)
 }
 
 
+# The pages whose code runs, in the order a reader meets them (the site's navigation): the
+# README's quickstart first, whose pendulum later pages reuse.
+_PAGES = ["README.md", "docs/getting-started.md"] + [f"docs/guides/{name}.md" for name in (
+    "formulations", "trees", "constraints", "control", "identification", "batches", "stability",
+    "speed", "errors")]
+
+
+def test_the_pages_cover_every_guide():
+    guides = {f"docs/guides/{p.name}" for p in (ROOT / "docs" / "guides").glob("*.md")}
+    assert guides == set(_PAGES[2:])
+
+
 def test_the_guides_code_runs(monkeypatch):
-    """Every Python block of the README, which the guides include, in order in one namespace
-    (as a reader pastes them), fragments after the context they assume. The block that joins
-    several processes by `jax.distributed` is run for real by
+    """Every Python block of the README and the guides, in order in one namespace (as a reader
+    pastes them), fragments after the context they assume. The block that joins several
+    processes by `jax.distributed` is run for real by
     tests/test_batch.py::test_two_processes_with_jax_distributed_equal_one."""
     monkeypatch.chdir(ROOT)
     monkeypatch.syspath_prepend(str(ROOT / "tests"))
-    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    blocks = [(page, block) for page in _PAGES
+              for block in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)]
+    assert len(blocks) >= 12
     namespace = {}
     exec("import jax, jax.numpy as jnp, numpy as np, jaxdyn", namespace)
     run = 0
-    for block in blocks:
+    for page, block in blocks:
         if "jax.distributed.initialize" in block:
             continue
         for key, context in _CONTEXT.items():
             if key in block:
                 exec(context, namespace)
         try:
-            exec(compile(block, "README.md", "exec"), namespace)
+            exec(compile(block, page, "exec"), namespace)
         except Exception as error:
-            raise AssertionError(f"README block failed:\n{block}") from error
+            raise AssertionError(f"a block of {page} failed:\n{block}") from error
         run += 1
         if run == 1:
             namespace["quickstart"] = tuple(namespace[k] for k in ("pendulum", "p", "q0", "qd0"))
