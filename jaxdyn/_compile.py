@@ -11,9 +11,11 @@ argument structure, a `jax.jit` of the array leaves alone, so that a repeated ca
 import contextlib
 import functools
 import gc
+from typing import Any
 
 import equinox as eqx
 import jax
+import jax.core
 import numpy as np
 
 
@@ -101,6 +103,11 @@ def gc_paused():
 class _Entry:
     """One argument structure: its `jax.jit`, and the static part of its output (recorded
     when traced)."""
+
+    # Set by the first call of `compiled`, which traces `arrays_only`.
+    out_treedef: Any  # a jax.tree_util.PyTreeDef: an alias, which pyright refuses as a type
+    out_dynamic: list[int]
+    out_static: dict[int, Any]
 
     def __init__(self, fn, treedef, leaves, dynamic, compiler_options):
         template = list(leaves)

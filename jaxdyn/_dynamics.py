@@ -2,6 +2,7 @@
 
 import abc
 import functools
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
@@ -60,12 +61,13 @@ class AbstractDynamics(eqx.Module):
         """(M, f) of M u̇ = f for one state, as this formulation forms them."""
 
     @abc.abstractmethod
-    def form_accelerations(self, t, q, u, p=None, *, small: bool):
+    def form_accelerations(self, t, q, u, p=None, *, small: bool
+                           ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(u̇, singular, nonfinite) for one state, u̇ NaN where the equations fail; `small`:
         the program will run as straight-line scalar code (see `equations_of_motion`)."""
 
     @abc.abstractmethod
-    def energy_terms(self, t, q, u, p=None):
+    def energy_terms(self, t, q, u, p=None) -> tuple[jax.Array, jax.Array]:
         """(T, V), the kinetic and potential energy, for the diagnostics."""
 
     @abc.abstractmethod
@@ -79,7 +81,7 @@ class AbstractDynamics(eqx.Module):
         mass_matrix, forcing = self.form_equations(t, q, u, p)
         return mass_matrix @ ud - forcing
 
-    def state_projection(self):
+    def state_projection(self) -> Callable | None:
         """None, or a function (t, q, u, p) → (q, u) that `simulate` applies after every step
         (drift control of constrained systems, `jaxdyn.Projection`)."""
         return None

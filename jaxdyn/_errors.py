@@ -9,10 +9,13 @@ caller's own `jax.jit` the message (with the state) still appears in JAX's runti
 """
 
 import functools
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar, overload
 
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import checkify
@@ -24,7 +27,8 @@ class _CheckFailed(RuntimeError):
     """Raised on the host by a failed check."""
 
 
-def error_if(x, checks, state=None, *, failed=None):
+def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=None, *,
+             failed=None):
     """`x`, or an error if one of `checks` fails.
 
     `checks`: a sequence of (pred, message) with boolean scalar preds, or a function returning
@@ -95,7 +99,18 @@ def _raise(messages, labels, preds, values):
     raise _CheckFailed(message)
 
 
-def reports_state(fn=None, *, block: bool = True):
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+@overload
+def reports_state(fn: None = None, *, block: bool = True) -> Callable[[_F], _F]: ...
+
+
+@overload
+def reports_state(fn: _F, *, block: bool = True) -> _F: ...
+
+
+def reports_state(fn: Callable | None = None, *, block: bool = True) -> Any:
     """Decorate an entry point so that a failed `error_if` leaves it as a `RuntimeError`
     carrying jaxdyn's message alone (not the runtime's wrapping of it). `block=False` for an
     entry point whose results are ready when it returns (`jaxdyn._compile.filter_jit`)."""

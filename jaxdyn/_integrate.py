@@ -2,10 +2,12 @@
 
 import functools
 import math
+from typing import cast
 
 import diffrax
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -309,6 +311,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
     saveat = diffrax.SaveAt(subs=[requested, diffrax.SubSaveAt(t1=True)], dense=dense,
                             controller_state=True)
     if stepsize_controller is None:
+        assert rtol is not None and atol is not None  # `simulate` filled in the defaults
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
     forward = adjoint is None and not dense and reachable <= MAX_FORWARD
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
@@ -328,6 +331,9 @@ def _simulate(dynamics, q0, u0, numbers, options):
     solution = _solve(solver, t0, t1, dt0, layout.join(q0, u0),
                       (dynamics, p, factorisation, layout), saveat,
                       _guard(stepsize_controller), adjoint, max_steps, forward=forward)
+    # Saved (`saveat`): the states (requested, last), their times and the controller's state.
+    assert solution.ys is not None and solution.ts is not None
+    assert solution.controller_state is not None
     (q, u), last = solution.ys
     q_last, u_last = layout.split(last)
     projection = dynamics.state_projection()
@@ -355,6 +361,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
                                  isinstance(solver, AbstractStructurePreserving))
     qd = None
     if "qd" in save:
+        assert q is not None and u is not None  # kept (`keep_q`, `keep_u`)
         qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
     recorded = {name: dynamics.record(name, ts_out, q, u, p) for name in records}
     return Solution(
@@ -768,6 +775,12 @@ class _GuardedAdaptive(diffrax.AbstractAdaptiveStepSizeController):
 
     controller: diffrax.AbstractAdaptiveStepSizeController
 
+    def __init__(self, controller: diffrax.AbstractAdaptiveStepSizeController):
+        # Written out because diffrax declares rtol, atol and norm as `eqx.AbstractVar`s, which
+        # a type checker takes for arguments of the generated `__init__` (they are properties
+        # here: the wrapped controller's).
+        self.controller = controller
+
     @property
     def rtol(self):
         return self.controller.rtol
@@ -781,7 +794,10 @@ class _GuardedAdaptive(diffrax.AbstractAdaptiveStepSizeController):
         return self.controller.norm
 
     def wrap(self, direction):
-        return _GuardedAdaptive(self.controller.wrap(direction))
+        # diffrax declares `wrap` to return the base class; an adaptive controller's returns
+        # its own type.
+        return _GuardedAdaptive(cast(diffrax.AbstractAdaptiveStepSizeController,
+                                     self.controller.wrap(direction)))
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guard_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)

@@ -1,6 +1,9 @@
 """Solving M a = f for a symmetric positive definite mass matrix M."""
 
+from typing import Any
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import jax.scipy.linalg as jsl
@@ -106,20 +109,21 @@ def _threshold(diagonal):
     return len(diagonal) * jnp.finfo(largest.dtype).eps * largest
 
 
-def solve(factorisation: Factorisation, forcing):
+def solve(factorisation: Factorisation, forcing) -> jax.Array:
     """a = M⁻¹ f from the factorisation.
 
     Where a pivot failed, the entries of a that depend on it are NaN (written-out blocks:
     through the NaN reciprocal pivot, without coupling the other entries, so that XLA does
     not recompute every entry's inputs for every entry); LAPACK blocks are NaN whole."""
     m = forcing.shape[-1]
-    accelerations = None
+    accelerations: jax.Array | None = None
     for group, factor, write_out in zip(factorisation.groups, factorisation.factors,
                                         factorisation.written_out):
         index = np.asarray(group)
         rhs = forcing[None] if _whole(group, m) else forcing[index]
         if write_out:
-            x = ldl_solve(*factor, rhs)
+            lower, reciprocals = factor
+            x = ldl_solve(lower, reciprocals, rhs)
         else:
             y = jsl.solve_triangular(factor, rhs[..., None], lower=True)
             x = jsl.solve_triangular(factor, y, lower=True, trans="T")[..., 0]
@@ -129,6 +133,7 @@ def solve(factorisation: Factorisation, forcing):
             if accelerations is None:
                 accelerations = jnp.zeros_like(forcing)
             accelerations = accelerations.at[index].set(x)
+    assert accelerations is not None  # `factorise` makes at least one group (at trace time)
     if not all(factorisation.written_out):
         accelerations = jnp.where(factorisation.singular, jnp.nan, accelerations)
     return accelerations
@@ -184,7 +189,7 @@ def ldl_solve(lower, reciprocals, rhs):
     y = []
     for i in range(m):  # L y = f
         y.append(rhs[..., i] - sum(lower[i][k] * y[k] for k in range(i)))
-    x = [None] * m
+    x: list[Any] = [None] * m
     for i in reversed(range(m)):  # D Lᵀ x = y
         x[i] = (y[i] * reciprocals[..., i]
                 - sum(lower[k][i] * x[k] for k in range(i + 1, m)))

@@ -11,6 +11,8 @@ same stages, tableau, error estimate and dense output as the wrapped diffrax sol
 Reference: J. C. Butcher, Numerical Methods for Ordinary Differential Equations (2016), §23.
 """
 
+from typing import cast
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -35,13 +37,13 @@ class UnrolledStages(AbstractForwardingSolver):
         return terms.vf(t0, y0, args)
 
     def init(self, terms, t0, t1, y0, args):
-        if not self.solver.tableau.fsal:
+        if not _tableau(self.solver).fsal:
             return None
         # (first step, f at the end of the previous step): nothing to reuse yet.
         return jnp.array(True), jax.tree_util.tree_map(jnp.zeros_like, y0)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        tableau = self.solver.tableau
+        tableau = _tableau(self.solver)
         control = terms.contr(t0, t1)
         h = t1 - t0
         if tableau.fsal:
@@ -63,6 +65,12 @@ class UnrolledStages(AbstractForwardingSolver):
         # First same as last: the last stage was evaluated at (t1, y1).
         state = (jnp.array(False), f) if tableau.fsal else None
         return y1, y_error, dense_info, state, diffrax.RESULTS.successful
+
+
+def _tableau(solver: diffrax.AbstractERK) -> diffrax.ButcherTableau:
+    # An explicit Runge–Kutta solver's tableau is a `ButcherTableau` (diffrax's `AbstractERK`);
+    # the annotation it inherits also admits the `MultiButcherTableau` of IMEX solvers.
+    return cast(diffrax.ButcherTableau, solver.tableau)
 
 
 def _combine(start, weights, stages):

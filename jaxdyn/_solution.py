@@ -9,7 +9,9 @@ from jaxtyping import Array, Float, Int
 from ._linalg import NONFINITE_FORCING, SINGULAR_CONSTRAINTS, SINGULAR_MASS_MATRIX
 
 
-class RESULTS(diffrax.RESULTS):
+# equinox's enumerations look final to a type checker (an Enum with members), but are made to be
+# extended; diffrax's own RESULTS carries the same ignore.
+class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     """diffrax's result codes, and the ways the equations of motion themselves can fail."""
 
     singular_mass_matrix = SINGULAR_MASS_MATRIX

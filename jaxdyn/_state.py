@@ -6,9 +6,11 @@ import math
 import os
 import sys
 import warnings
+from typing import Any
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -16,7 +18,7 @@ from ._compile import filter_jit
 from ._errors import reports_state
 
 
-def as_float_array(x, name: str):
+def as_float_array(x, name: str) -> jax.Array:
     """`x` as a floating-point array; integers are promoted to the default float dtype."""
     x = jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.bool_):
@@ -26,7 +28,7 @@ def as_float_array(x, name: str):
     return x
 
 
-def check_vector(x, name: str, size: int | None = None):
+def check_vector(x, name: str, size: int | None = None) -> jax.Array:
     """Trace-time check that `x` is 1-D (of length `size` if given)."""
     x = as_float_array(x, name)
     if x.ndim != 1:
@@ -48,9 +50,9 @@ def over_states(signature: str):
     along a whole trajectory.
     """
     inputs = signature.split("->")[0]
-    num_arrays = inputs.count("(")
+    names = _state_names(signature)
+    num_arrays = len(names)
     core_ndims = [part.count(",") + (0 if part == "()" else 1) for part in _split(inputs)]
-    names = ("t", "q", "qd", "qdd")[:num_arrays]
 
     def decorator(method):
         def broadcast(self, *args, **kwargs):
@@ -68,10 +70,15 @@ def over_states(signature: str):
             fn = jnp.vectorize(lambda *xs: method(self, *xs, p, **options), signature=signature)
             return fn(*arrays)
 
-        broadcast.names = names
         return functools.wraps(method)(broadcast)
 
     return decorator
+
+
+def _state_names(signature: str) -> tuple[str, ...]:
+    """The names of the arrays a method on states takes, by its core signature (`over_states`):
+    ``("t", "q", "qd")`` for ``"(),(n),(n)->()"``."""
+    return ("t", "q", "qd", "qdd")[:signature.split("->")[0].count("(")]
 
 
 def _positional(name, names, args, kwargs):
@@ -151,6 +158,10 @@ _warned_float32 = []
 _LOW_PRECISION = (np.dtype(np.float32), np.dtype(np.float16), np.dtype(jnp.bfloat16))
 
 
+# JAX's flags are attributes that `Config` adds at run time, unknown to a type checker.
+_CONFIG: Any = jax.config
+
+
 def _caller_outside_jaxdyn() -> int:
     """The `stacklevel` of the first caller outside the jaxdyn package (the user's line)."""
     frame, level = sys._getframe(2), 2  # 1: the function that warns; 2: its caller
@@ -164,7 +175,7 @@ def state_dtype(*candidates):
     """The floating dtype of the first array among `candidates` (the state), else the
     default float. Warns once per process when JAX's 64-bit mode is off and the state was not
     given in float32 on purpose (float32 arrays)."""
-    if not jax.config.jax_enable_x64 and not _warned_float32 and not any(
+    if not _CONFIG.jax_enable_x64 and not _warned_float32 and not any(
             getattr(x, "dtype", None) in _LOW_PRECISION for x in candidates):
         _warned_float32.append(True)
         warnings.warn(FLOAT32_BY_DEFAULT, UserWarning, stacklevel=_caller_outside_jaxdyn())
@@ -182,19 +193,21 @@ def public_method(signature: str):
 
     Inside a caller's `jax.jit`, `vmap` or `grad` it is traced once and inlined.
     """
+    names = _state_names(signature)
+
     def decorator(method):
         broadcast = over_states(signature)(method)
 
         @filter_jit
         def compiled(self, args, options):
-            if len(args) > len(broadcast.names):  # dtypes are static: checked when traced
+            if len(args) > len(names):  # dtypes are static: checked when traced
                 check_parameter_dtypes(args[-1], state_dtype(*args[1:]))
             return broadcast(self, *args, **dict(options))
 
         @functools.wraps(method)
         def wrapper(self, *args, **kwargs):
             options = tuple((k, v) for k, v in kwargs.items() if k != "p")
-            args = _positional(method.__name__, broadcast.names, args, kwargs)
+            args = _positional(method.__name__, names, args, kwargs)
             return compiled(self, numbers_as_arrays(args, state_dtype(*args[1:])), options)
 
         return reports_state(wrapper, block=False)  # `compiled` returns ready results
@@ -224,7 +237,7 @@ def public_function(num_static: int = 1):
     return decorator
 
 
-def frozen_constant(x):
+def frozen_constant(x: Any) -> Any:
     """A numeric constant as (nested tuples of) Python floats, not an array: a compiled
     program then sees it as a constant, folded into straight-line code, rather than as one
     more input (`eqx.filter_jit` traces every array of a module). Functions of p, None and

@@ -27,8 +27,10 @@ This is an interpreter over jaxprs in the sense of JAX's "Writing custom interpr
 
 import contextvars
 import math
+from typing import Literal, TypeGuard, cast, overload
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex
@@ -87,7 +89,8 @@ class Symbol:
 _ANALYSIS = contextvars.ContextVar("jaxdyn_structure_analysis", default=False)
 
 
-_BUDGET = contextvars.ContextVar("jaxdyn_unroll_budget", default=None)
+_BUDGET: contextvars.ContextVar[list[int] | None] = contextvars.ContextVar(
+    "jaxdyn_unroll_budget", default=None)
 
 
 def _spend(count):
@@ -202,6 +205,16 @@ def _traced(fn, leaves, treedef, limit):
     return closed, out_struct
 
 
+@overload
+def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int,
+             emit: Literal[True] = True) -> list[np.ndarray]: ...
+
+
+@overload
+def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int,
+             emit: Literal[False]) -> int: ...
+
+
 def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = True):
     """Evaluate a closed jaxpr element by element; returns object arrays of scalars, or with
     `emit=False` only the number of operations it would emit.
@@ -258,7 +271,7 @@ def assemble(elements: np.ndarray, dtype) -> jax.Array:
     return jnp.stack(flat).reshape(elements.shape)
 
 
-def is_constant(element) -> bool:
+def is_constant(element) -> TypeGuard[np.generic]:
     """True if an element is known at trace time."""
     return isinstance(element, np.generic)
 
@@ -318,12 +331,14 @@ def _inline_jaxpr(eqn):
     return None
 
 
-def _eval(jaxpr, consts, args):
+def _eval(jaxpr, consts, args) -> list[np.ndarray]:
     env = {}
 
     def read(v):
         if isinstance(v, jex.Literal):
-            return split(np.asarray(v.val, v.aval.dtype))
+            # A literal's abstract value is a ShapedArray (declared as any AbstractValue); the
+            # cast names its type as a string, which costs no attribute look-up here.
+            return split(np.asarray(v.val, cast("jax.core.ShapedArray", v.aval).dtype))
         return env[v]
 
     for v, c in zip(jaxpr.constvars, consts):

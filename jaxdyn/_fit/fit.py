@@ -108,7 +108,7 @@ class FitResult(eqx.Module):
     @property
     def standard_errors(self):
         """Standard errors shaped like the parameter tree (None for frozen leaves)."""
-        errors = iter(self.uncertainty.standard_errors)
+        errors = iter(self._uncertainty().standard_errors)
         leaves = jax.tree_util.tree_leaves(self.params)
         out = [np.reshape([next(errors) for _ in range(np.size(x))], np.shape(x))
                if trained else None for x, trained in zip(leaves, self.problem.trained)]
@@ -119,9 +119,17 @@ class FitResult(eqx.Module):
         optimum (z = 1.96 for 95 %)."""
         z = float(jax.scipy.special.ndtri(0.5 + level / 2))
         values = np.concatenate([np.ravel(x) for x in self.problem.trained_leaves(self.params)])
-        errors = self.uncertainty.standard_errors
+        uncertainty = self._uncertainty()
+        errors = uncertainty.standard_errors
         return {name: (float(v - z * e), float(v + z * e))
-                for name, v, e in zip(self.uncertainty.names, values, errors)}
+                for name, v, e in zip(uncertainty.names, values, errors)}
+
+    def _uncertainty(self) -> Uncertainty:
+        """`uncertainty`, which the standard errors and intervals need."""
+        if self.uncertainty is None:  # an AttributeError, as before, that says why
+            raise AttributeError("This fit has no standard errors: it ran with "
+                                 "uncertainty=False.")
+        return self.uncertainty
 
     def summary(self) -> str:
         """The loss and convergence, whether the model explains the data (residuals against

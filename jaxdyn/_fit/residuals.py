@@ -152,6 +152,7 @@ class TrajectoryMatching(eqx.Module):
         solution = simulate(self.dynamics, q0, u0, p, t0=ts[0], t1=ts[-1], ts=ts,
                             save=("q", "u"), adjoint=self.adjoint, throw=False,
                             **self.simulate_options)
+        assert solution.q is not None and solution.u is not None  # saved: save=("q", "u")
         return solution.q, solution.u
 
     def _segments(self, ts, params, q0, u0, inputs, nodes):
@@ -199,13 +200,14 @@ class TrajectoryMatching(eqx.Module):
         out = []
         for i, group in enumerate(self.groups):
             nodes = None if z["nodes"] is None else z["nodes"][i]
-            per_experiment = (group.ts, *states[i], group.inputs, nodes)
+            q0, u0 = states[i]
+            per_experiment = (group.ts, q0, u0, group.inputs, nodes)
             if group.ts.shape[1] > LONG_RECORD:
                 predicted, gaps = jax.lax.map(
                     lambda x: self._segments(x[0], params, *x[1:]), per_experiment)
             else:
                 predicted, gaps = jax.vmap(self._segments, in_axes=(0, None, 0, 0, 0, 0))(
-                    group.ts, params, *per_experiment[1:])
+                    group.ts, params, q0, u0, group.inputs, nodes)
             out.append((jnp.where(finite, predicted, jnp.inf), gaps))
         return out
 

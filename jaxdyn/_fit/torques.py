@@ -89,7 +89,10 @@ def _physical(pi):
 
 def _regressors(tree, q, u, ud, p, chunk):
     """Y over the samples, (k, m, 10 N), `chunk` states at a time (memory bounded by it)."""
-    one = lambda x: inverse_dynamics_regressor(tree, *x, p)  # noqa: E731
+    def one(state):
+        q, u, ud = state
+        return inverse_dynamics_regressor(tree, q, u, ud, p)
+
     return jax.lax.map(one, (q, u, ud), batch_size=min(chunk, q.shape[0]))
 
 
@@ -206,10 +209,10 @@ def fit_inertial_parameters(
     **Returns:** an `InertialFit`.
     """
     q, u, ud, tau = (jnp.asarray(x, dtype=float) for x in (q, u, ud, tau))
-    k, m = tau.shape if tau.ndim == 2 else (None, None)
-    if tau.ndim != 2 or m != tree.num_speeds:
+    if tau.ndim != 2 or tau.shape[1] != tree.num_speeds:
         raise ValueError(f"tau must have shape (k, {tree.num_speeds}) (one row of joint forces "
                          f"per sample), got {tau.shape}.")
+    k, m = tau.shape
     for name, x, width in (("q", q, tree.num_coordinates), ("u", u, m), ("ud", ud, m)):
         if x.shape != (k, width):
             raise ValueError(f"{name} must have shape ({k}, {width}) to match tau, got "

@@ -1,7 +1,7 @@
 """Constraints on any formulation: Lagrange's equations of the first kind (multipliers), their
 elimination into independent speeds, drift control and consistent states."""
 
-from typing import Callable
+from typing import Callable, cast
 
 import equinox as eqx
 import jax
@@ -339,7 +339,11 @@ class Constrained(AbstractDynamics):
     def project(self, t, q, u, p=None, iterations=None):
         """(q, u) moved onto the constraints by the smallest corrections (`Projection`); no
         checks and no branches (used after every step of `simulate`)."""
-        iterations = self.stabilisation.iterations if iterations is None else iterations
+        if iterations is None:
+            if not isinstance(self.stabilisation, Projection):
+                raise ValueError("project needs `iterations` when the stabilisation is not a "
+                                 f"jaxdyn.Projection (it is {self.stabilisation!r}).")
+            iterations = self.stabilisation.iterations
         for _ in range(iterations):
             q, _ = _gauss_newton_step(lambda q: self._phi(t, q, p), q)
         u, _ = _gauss_newton_step(lambda u: self._velocity_residual(t, q, u, p), u)
@@ -383,7 +387,9 @@ class Constrained(AbstractDynamics):
             import scipy.linalg  # eager, once per model
 
             jacobian = np.asarray(self.constraint_jacobian(t, q, u, p))
-            _, r, pivots = scipy.linalg.qr(jacobian, pivoting=True)
+            # scipy's qr is unannotated: with pivoting=True it returns (Q, R, pivots).
+            _, r, pivots = cast(tuple[np.ndarray, np.ndarray, np.ndarray],
+                                scipy.linalg.qr(jacobian, pivoting=True))
             rank = int(np.sum(np.abs(np.diag(r)) > 1e-10 * np.abs(r[0, 0])))
             independent = sorted(int(i) for i in pivots[rank:])
         return IndependentSpeeds(self, tuple(independent), u.shape[0])
@@ -470,11 +476,12 @@ class IndependentSpeeds(AbstractDynamics):
         return self.constrained._phi(t, q, p), jnp.zeros((0,), q.dtype)
 
     def state_projection(self):
-        if not isinstance(self.constrained.stabilisation, Projection):
+        stabilisation = self.constrained.stabilisation
+        if not isinstance(stabilisation, Projection):
             return None
 
         def project(t, q, v, p):
-            for _ in range(self.constrained.stabilisation.iterations):
+            for _ in range(stabilisation.iterations):
                 q, _ = _gauss_newton_step(lambda q: self.constrained._phi(t, q, p), q)
             return q, v
 

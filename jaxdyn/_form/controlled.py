@@ -1,7 +1,7 @@
 """Control inputs: generalized forces B(q, p) r added to a formulation's equations."""
 
 import inspect
-from typing import Any, Callable
+from typing import Any, Callable, TypeGuard
 
 import diffrax
 import equinox as eqx
@@ -154,7 +154,7 @@ class Controlled(AbstractDynamics):
     """
 
     dynamics: AbstractDynamics
-    input_map: Callable | None
+    input_map: "Callable | ForceInput | TorqueInput | _Actuated | _Stacked | None"
     actuated: tuple[int, ...] | None = eqx.field(static=True)
     inputs: Any = None
     time_dependent: bool = eqx.field(default=False, static=True)
@@ -323,7 +323,7 @@ class _Stacked(eqx.Module):
 _MAPS = (ForceInput, TorqueInput, _Actuated, _Stacked)
 
 
-def _is_map(x) -> bool:
+def _is_map(x) -> TypeGuard[Callable | ForceInput | TorqueInput | _Actuated | _Stacked]:
     return callable(x) or isinstance(x, _MAPS)
 
 

@@ -16,7 +16,7 @@ Descriptions do not know the formulations; the formulations take a description.
 """
 
 import abc
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import equinox as eqx
 import jax
@@ -32,38 +32,46 @@ class AbstractMultibody(eqx.Module):
     (`kinematic_matrix`); `kinematic_map` is the description's own choice of speeds when None.
     """
 
-    time_dependent: eqx.AbstractVar[bool]
+    if TYPE_CHECKING:
+        # An `eqx.AbstractVar` is no dataclass field at run time, but a type checker takes it
+        # for one, first in `__init__`'s arguments: `RigidBodyTree(links, ...)` would not
+        # check. Declared to it as what it is, a bool every description provides.
+        @property
+        def time_dependent(self) -> bool: ...
+    else:
+        time_dependent: eqx.AbstractVar[bool]
 
     # -- what a description provides ---------------------------------------------------------
 
     @abc.abstractmethod
-    def kinematic_matrix(self, t, q, p, kinematic_map: Callable | None = None, u=None):
+    def kinematic_matrix(self, t, q, p, kinematic_map: Callable | None = None, u=None
+                         ) -> jax.Array:
         """K (n × m) with q̇ = K u; with `u`, after checking that u has m entries."""
 
     @abc.abstractmethod
-    def speeds_from_rates(self, t, q, qd, p):
+    def speeds_from_rates(self, t, q, qd, p) -> jax.Array:
         """u from q̇ (where the speeds are a re-parametrisation of q̇, K invertible); raises
         where they are not (quaternions, nonholonomic speeds)."""
 
     @abc.abstractmethod
-    def inertias(self, p, dtype):
+    def inertias(self, p, dtype) -> tuple[jax.Array, jax.Array]:
         """(masses (N,), inertia tensors about the centres of mass, body axes (N, 3, 3)), in
         `dtype` (the state's: constants of a description never set the precision)."""
 
     @abc.abstractmethod
-    def body_velocities(self, t, q, u, p, kinematic_map=None):
+    def body_velocities(self, t, q, u, p, kinematic_map=None) -> tuple[jax.Array, jax.Array]:
         """(v_G (N, 3) in world axes, ω (N, 3) in body axes)."""
 
     @abc.abstractmethod
-    def body_poses(self, t, q, p):
+    def body_poses(self, t, q, p) -> tuple[jax.Array, jax.Array]:
         """(centres of mass (N, 3) in world axes, orientations R (N, 3, 3), body → world)."""
 
     @abc.abstractmethod
-    def potential_energy(self, t, q, p):
+    def potential_energy(self, t, q, p) -> jax.Array:
         """V: gravity, springs and any user potential."""
 
     @abc.abstractmethod
-    def applied_forces(self, t, q, u, p, kinematic_map=None):
+    def applied_forces(self, t, q, u, p, kinematic_map=None) -> jax.Array:
         """The generalized non-conservative forces along the speeds (m,): loads, generalized
         forces and dissipation, Π with Π·δu the virtual work."""
 

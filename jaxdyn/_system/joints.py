@@ -23,6 +23,7 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -36,11 +37,11 @@ class AbstractJoint(eqx.Module):
     nv: eqx.AbstractClassVar[int]
 
     @abc.abstractmethod
-    def transform(self, q):
+    def transform(self, q) -> tuple[jax.Array, jax.Array]:
         """(R_J, r_J): the pose of the link frame in the joint frame, for coordinates q."""
 
     @abc.abstractmethod
-    def twist(self, u):
+    def twist(self, u) -> tuple[jax.Array, jax.Array]:
         """(ω, v) = S u: the link's velocity relative to the joint frame, in its own axes."""
 
     @abc.abstractmethod
@@ -48,7 +49,7 @@ class AbstractJoint(eqx.Module):
         """S (6 × nv), rows (ω, v): constant in the link's axes."""
 
     @abc.abstractmethod
-    def rate_matrix(self, q):
+    def rate_matrix(self, q) -> jax.Array:
         """K (nq × nv) with q̇ = K u."""
 
     @abc.abstractmethod
@@ -69,14 +70,15 @@ def _along(axis, x):
     return x * jnp.broadcast_to(jnp.asarray(axis, x.dtype), x.shape[:-1] + (3,))
 
 
-def _unit(axis):
+def _unit(axis) -> tuple[float, float, float]:
     """A unit axis as a tuple of floats: static, so that a joint's structure (say, rotation
     about z) is known at trace time and its zeros fold away."""
     axis = np.asarray(axis, dtype=float)
     norm = np.linalg.norm(axis) if axis.shape == (3,) else 0.0
     if norm == 0:
         raise ValueError(f"A joint axis must be a non-zero 3-vector, got {axis.tolist()}.")
-    return tuple(float(a) for a in axis / norm)
+    x, y, z = axis / norm
+    return float(x), float(y), float(z)
 
 
 class _AlongAxis(AbstractJoint):

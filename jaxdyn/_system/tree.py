@@ -17,12 +17,13 @@ order for large ones, so that compile time does not grow with the number of link
 """
 
 import dataclasses
-from typing import Callable
+from typing import Callable, overload
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._convention import call, scalar, vector
 from .._state import check_vector, frozen_constant
@@ -65,6 +66,20 @@ def _buffer(template, parents):
         lambda x: jnp.broadcast_to(x, (n + 1,) + jnp.shape(x)).astype(jnp.result_type(x)),
         template)
     return buffer, np.array([n if parent < 0 else parent for parent in parents])
+
+
+@overload
+def checked_state(tree, q, u: None = None, ud: None = None) -> tuple[jax.Array, None, None]: ...
+
+
+@overload
+def checked_state(tree, q, u: ArrayLike, ud: None = None
+                  ) -> tuple[jax.Array, jax.Array, None]: ...
+
+
+@overload
+def checked_state(tree, q, u: ArrayLike, ud: ArrayLike
+                  ) -> tuple[jax.Array, jax.Array, jax.Array]: ...
 
 
 def checked_state(tree, q, u=None, ud=None):
@@ -371,6 +386,13 @@ class RigidBodyTree(AbstractMultibody):
         inverse = np.argsort(order)
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *pieces)
         return jax.tree_util.tree_map(lambda x: x[inverse].astype(dtype), stacked)
+
+    @overload
+    def joint_motion(self, q, u: None = None) -> tuple[jax.Array, jax.Array]: ...
+
+    @overload
+    def joint_motion(self, q, u: jax.Array
+                     ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]: ...
 
     def joint_motion(self, q, u=None):
         """For every link (in order): its pose in its parent (R_PC (N, 3, 3), r_PC (N, 3)), and

@@ -6,6 +6,8 @@ joints — a closed loop — is refused with an error; loop closures are constra
 Mimic joints are imported as independent joints (as Pinocchio does by default).
 """
 
+from typing import Any
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -95,8 +97,9 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
             dynamics = urdf_joint.dynamics
             if damping and joint.nv == 1 and dynamics is not None and dynamics.damping:
                 values[name]["damping"] = np.asarray(float(dynamics.damping))
-        inertial = {k: LinkParameter(name, k) if parameters else v
-                    for k, v in values[name].items()}
+        # Link's keyword arguments: mass, com, inertia (and damping) as values or parameters.
+        inertial: dict[str, Any] = {k: LinkParameter(name, k) if parameters else v
+                                    for k, v in values[name].items()}
         if not parameters:
             inertial.update(com=tuple(com), inertia=jnp.asarray(inertia))
         tree_links.append(Link(name, joint, parent=parent, translation=translation,
