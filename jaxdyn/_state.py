@@ -14,6 +14,7 @@ import jax.core
 import jax.numpy as jnp
 import numpy as np
 
+from ._chunking import chunked_vmap
 from ._compile import filter_jit
 from ._errors import reports_state
 
@@ -224,7 +225,9 @@ def public_function(num_static: int = 1):
     def decorator(fn):
         @filter_jit
         def compiled(static, args, options):
-            return fn(*static, *args, **dict(options))
+            # Under `jax.vmap` in chunks of a few states (`jaxdyn._chunking`): a tree's
+            # recursions are array programs of many small kernels.
+            return chunked_vmap(functools.partial(fn, **dict(options)))(*static, *args)
 
         @functools.wraps(fn)
         def wrapper(*args, **options):

@@ -35,6 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex
 
+from ._chunking import chunked_vmap
+
 # Programs whose unrolled form has more scalar operations than this (after constant folding)
 # run as written. Up to it, straight-line code wins twice over: a program of 3-vectors and
 # 3 × 3 rotations run as written launches a kernel per tiny operation (a heavy top by
@@ -152,7 +154,8 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
         closed, out_struct = _traced(fn, leaves, treedef, limit)
         outs = evaluate(closed, leaves, limit)
     except _Fallback:
-        return (fn if otherwise is None else otherwise)(*args)
+        # As arrays; under `jax.vmap` in chunks of a few states (`jaxdyn._chunking`).
+        return chunked_vmap(fn if otherwise is None else otherwise)(*args)
     out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
     arrays = [assemble(o, s.dtype) for o, s in zip(outs, out_leaves)]
     return jax.tree_util.tree_unflatten(out_treedef, arrays)

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import jaxdyn
+import jaxdyn._chunking
 import jaxdyn._system.tree
 
 from helpers import assert_close, central_difference_params
@@ -91,6 +92,51 @@ def test_against_pinocchio(name, floating, monkeypatch):
         ours = np.einsum("ij,sj->si", perm, np.asarray(accelerations))
         assert_close(ours, case["accelerations"], rtol=0, atol=1e-10 * scale,
                      err_msg=f"{name}, {label}")
+
+
+def test_a_vmapped_batch_in_chunks_against_pinocchio():
+    """`jax.vmap` of a tree's array programs runs in chunks of a few states
+    (`jaxdyn._chunking`): a batch of 19 Panda states (two whole chunks and a padded one) gives
+    Pinocchio's forward dynamics, mass matrix and the derivatives of the accelerations in q
+    and u (`computeABADerivatives`), forward (`jacfwd`) and reverse (`grad`) through the
+    batch, to 1e-10 relative."""
+    robot = Robot.load(robot_file("panda.urdf"))
+    model, data, perm = robot.model, robot.data, robot.permutation
+    assert jaxdyn._chunking.CHUNK < 19 and 19 % jaxdyn._chunking.CHUNK
+    (q_pin, v_pin, tau_pin), (q, u, tau) = robot.random_states(19, seed=3)
+    expected, d_dq, d_dv, masses = [], [], [], []
+    for x, v, f in zip(q_pin, v_pin, tau_pin):
+        expected.append(pin.aba(model, data, x, v, f).copy())
+        derivatives = pin.computeABADerivatives(model, data, x, v, f)
+        d_dq.append(derivatives[0].copy())
+        d_dv.append(derivatives[1].copy())
+        m = pin.crba(model, data, x)
+        masses.append(np.triu(m) + np.triu(m, 1).T)
+    expected, d_dq, d_dv = np.stack(expected), np.stack(d_dq), np.stack(d_dv)
+    tree = jaxdyn.RigidBodyTree(robot.tree.links, gravity=robot.tree.gravity,
+                                forces=lambda q, u, p: p["tau"])
+    dynamics = jaxdyn.ArticulatedBody(tree)
+    p_tau = jax.vmap(lambda tau: {**robot.p, "tau": tau})(jnp.asarray(tau))
+
+    def accelerations(q, u, p):
+        return dynamics.accelerations(0.0, q, u, p, throw=False)
+
+    def to_pinocchio(x):  # speeds (and, for the Panda's one-coordinate joints, coordinates)
+        return np.einsum("ij,...jk,lk->...il", perm, np.asarray(x), perm)
+
+    ours = np.einsum("ij,sj->si", perm, np.asarray(jax.vmap(accelerations)(q, u, p_tau)))
+    scale = np.max(np.abs(expected))
+    assert_close(ours, expected, rtol=0, atol=1e-10 * scale)
+    m = jax.vmap(dynamics.mass_matrix)(jnp.zeros(19), q, u, p_tau)
+    assert_close(to_pinocchio(m), np.stack(masses), rtol=0, atol=1e-10 * np.max(masses))
+    jacobians = jax.vmap(jax.jacfwd(accelerations, argnums=(0, 1)))(q, u, p_tau)
+    for ours, theirs in zip(jacobians, (d_dq, d_dv)):
+        assert_close(to_pinocchio(ours), theirs, rtol=0, atol=1e-10 * np.max(np.abs(theirs)))
+    # Reverse mode through the batch: ∂/∂q Σ |u̇|² = 2 (∂u̇/∂q)ᵀ u̇, state by state.
+    gradient = jax.grad(lambda q: jnp.sum(jax.vmap(accelerations)(q, u, p_tau) ** 2))(q)
+    chained = 2 * np.einsum("sij,si->sj", d_dq, expected)
+    assert_close(np.einsum("ij,sj->si", perm, np.asarray(gradient)), chained, rtol=0,
+                 atol=1e-10 * np.max(np.abs(chained)))
 
 
 def test_urdf_parameters_are_the_files_inertial_values():

@@ -79,7 +79,8 @@ def test_programs_over_budget_run_as_written():
     fn = lambda x: jnp.sin(x) @ jnp.cos(x)  # noqa: E731
     x = jnp.ones(50)
     jaxpr = jax.make_jaxpr(lambda x: unrolled(fn, x, max_elements=10))(x)
-    assert any(e.primitive.name == "dot_general" for e in jaxpr.jaxpr.eqns)
+    # As written (inside the rule that batches array programs in chunks: a nested jaxpr).
+    assert "dot_general" in str(jaxpr)
     assert_close(unrolled(fn, x, max_elements=10), fn(x), rtol=1e-15)
     called = []
     jax.make_jaxpr(lambda x: unrolled(fn, x, max_elements=10,
