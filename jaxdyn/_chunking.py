@@ -1,15 +1,17 @@
 """`jax.vmap` of array programs in chunks of a few states.
 
-A formulation's array program (a robot's articulated-body algorithm, the mass matrix of a
-chain of links) is tens of small kernels per link. Batched over a thousand states by
-`jax.vmap`, every kernel streams arrays of a thousand 6 × 6 blocks through memory and the
-program runs at the speed of memory, not of arithmetic; over a few states at a time the same
-kernels work in cache. So these programs define their own batching rule
-(`jax.custom_batching.custom_vmap`): under `jax.vmap` they run as `jax.lax.map` over chunks of
-`CHUNK` states, each chunk vmapped. Measured on the Panda arm's forward dynamics, per state in a
-batch of 1024 (2-core CPU, float64): 13.8 µs vmapped, 2.2 µs in chunks of 8, 9.9 µs one state
-at a time (`benchmarks/README.md`). Derivatives pass through the rule (its JVP is the JVP of
-the chunked map), and nested `vmap`s batch the map.
+A tree's recursions (the articulated-body, composite-rigid-body and Newton–Euler algorithms,
+frame kinematics) as array programs are tens of small kernels of 6 × 6 and 3 × 3 algebra per
+link. Batched over a thousand states by `jax.vmap`, every kernel streams arrays of a thousand
+blocks through memory and the program runs at the speed of memory, not of arithmetic; over a
+few states at a time the same kernels work in cache. So these programs define their own
+batching rule (`jax.custom_batching.custom_vmap`): under `jax.vmap` they run as `jax.lax.map`
+over chunks of `CHUNK` states, each chunk vmapped. Measured on the Panda arm's forward
+dynamics, per state in a batch of 1024 (2-core CPU, float64): 13.8 µs vmapped, 2.2 µs in
+chunks of 8, 9.9 µs one state at a time (`benchmarks/README.md`). Equations formed as whole
+matrices do not use it: LAPACK's batched factorisations prefer the whole batch. Derivatives
+pass through the rule (its JVP is the JVP of the chunked map), and nested `vmap`s batch the
+map.
 """
 
 from collections.abc import Callable

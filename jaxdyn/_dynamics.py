@@ -48,6 +48,16 @@ class AbstractDynamics(eqx.Module):
     #: A class attribute: read without binding a method, which for a module costs ~50 µs.
     saved_records: ClassVar[tuple[str, ...]] = ()
 
+    @property
+    def batch_in_chunks(self) -> bool:
+        """Whether `jax.vmap` runs this system's array programs in chunks of a few states
+        (`jaxdyn._chunking`): true for the recursions over trees of 6 × 6 spatial algebra
+        (many small kernels, memory-bound when a thousand states stream through each), false
+        for equations formed as whole matrices (LAPACK's batched factorisations prefer the
+        whole batch). A system wrapping another (`Controlled`, `Constrained`) follows it."""
+        inner = getattr(self, "dynamics", None)
+        return isinstance(inner, AbstractDynamics) and inner.batch_in_chunks
+
     @abc.abstractmethod
     def coordinate_rates(
         self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
@@ -116,13 +126,14 @@ class AbstractDynamics(eqx.Module):
     def mass_matrix_and_forcing(self, t, q, u, p=None):
         """(M, f) of M u̇ = f, formed together (they share their derivative passes)."""
         check_static_indexing(self.user_functions, t, q, u, p)
-        return unrolled(self.form_equations, t, q, u, p)
+        return unrolled(self.form_equations, t, q, u, p, chunked=self.batch_in_chunks)
 
     @public_method("(),(n),(m)->(m,m)")
     def mass_matrix(self, t, q, u, p=None):
         """The mass matrix M of M u̇ = f (symmetric positive definite)."""
         check_static_indexing(self.user_functions, t, q, u, p)
-        return unrolled(lambda *args: self.form_equations(*args)[0], t, q, u, p)
+        return unrolled(lambda *args: self.form_equations(*args)[0], t, q, u, p,
+                        chunked=self.batch_in_chunks)
 
     @public_method("(),(n),(m)->()")
     def mass_matrix_condition(self, t, q, u, p=None):
@@ -136,7 +147,8 @@ class AbstractDynamics(eqx.Module):
     def forcing(self, t, q, u, p=None):
         """The forcing f of M u̇ = f: every term of the equations except M u̇."""
         check_static_indexing(self.user_functions, t, q, u, p)
-        return unrolled(lambda *args: self.form_equations(*args)[1], t, q, u, p)
+        return unrolled(lambda *args: self.form_equations(*args)[1], t, q, u, p,
+                        chunked=self.batch_in_chunks)
 
     @public_method("(),(n),(m)->(m)")
     def accelerations(self, t, q, u, p=None, *, throw: bool = True):
@@ -170,7 +182,7 @@ class AbstractDynamics(eqx.Module):
         `Constrained` system f holds no constraint forces: r is what the constraints and any
         actuators must supply together. Leading axes broadcast (a whole trajectory at once)."""
         check_static_indexing(self.user_functions, t, q, u, p)
-        return unrolled(self.form_residual, t, q, u, ud, p)
+        return unrolled(self.form_residual, t, q, u, ud, p, chunked=self.batch_in_chunks)
 
     @public_method("(),(n),(m)->()")
     def kinetic_energy(self, t, q, u, p=None):
@@ -211,7 +223,8 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
         return _equations(dynamics, t, q, u, p, factorisation=factorisation, small=False)
     return unrolled(functools.partial(_straight_line_equations, dynamics), t, q, u, p,
                     otherwise=functools.partial(_equations, dynamics, factorisation=None,
-                                                small=False))
+                                                small=False),
+                    chunked=dynamics.batch_in_chunks)
 
 
 def straight_line_size(dynamics, t, q, u, p) -> int | None:

@@ -142,9 +142,11 @@ def _symbols_like(x, tag):
     return _filled(np.shape(x), Symbol(frozenset([tag])))
 
 
-def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
+def unrolled(fn, *args, otherwise=None, max_elements: int | None = None,
+             chunked: bool = False):
     """``fn(*args)`` evaluated as straight-line scalar code, or ``otherwise(*args)`` (by
-    default ``fn(*args)`` as written) when the program is too large.
+    default ``fn(*args)`` as written) when the program is too large; with `chunked`, that
+    array program runs in chunks of a few states under `jax.vmap` (`jaxdyn._chunking`).
 
     `args` are pytrees of arrays; the result has the structure of ``fn(*args)``.
     """
@@ -154,8 +156,8 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None):
         closed, out_struct = _traced(fn, leaves, treedef, limit)
         outs = evaluate(closed, leaves, limit)
     except _Fallback:
-        # As arrays; under `jax.vmap` in chunks of a few states (`jaxdyn._chunking`).
-        return chunked_vmap(fn if otherwise is None else otherwise)(*args)
+        array_program = fn if otherwise is None else otherwise
+        return (chunked_vmap(array_program) if chunked else array_program)(*args)
     out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
     arrays = [assemble(o, s.dtype) for o, s in zip(outs, out_leaves)]
     return jax.tree_util.tree_unflatten(out_treedef, arrays)

@@ -124,6 +124,8 @@ def test_a_vmapped_batch_in_chunks_against_pinocchio():
     def to_pinocchio(x):  # speeds (and, for the Panda's one-coordinate joints, coordinates)
         return np.einsum("ij,...jk,lk->...il", perm, np.asarray(x), perm)
 
+    # The batch runs as a loop over chunks (the rule's `lax.map`: a scan in the program).
+    assert "scan" in str(jax.make_jaxpr(jax.vmap(accelerations))(q, u, p_tau))
     ours = np.einsum("ij,sj->si", perm, np.asarray(jax.vmap(accelerations)(q, u, p_tau)))
     scale = np.max(np.abs(expected))
     assert_close(ours, expected, rtol=0, atol=1e-10 * scale)
