@@ -140,19 +140,38 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
     (Atkeson, An and Hollerbach, 1986).
 
     **Arguments:** the tree, coordinates q (n,), speeds u (m,), accelerations u̇ (m,), and p
-    (only gravity may depend on it). Formed as the Jacobian of the recursive Newton–Euler
-    forces in π (exact: they are linear), in reverse mode: m passes back through the
-    recursion rather than 10 N forward. `jax.vmap` it over states.
+    (only gravity may depend on it). Formed link by link: the joint forces are the links'
+    forces mapped back through their Jacobians, τ = Σ_j J_jᵀ f_j, and each link's force
+    f_j = I_j a_j + v_j ×* I_j v_j (its spatial acceleration a_j measured from the world's
+    (0, −g)) is linear in its own π_j, f_j = A_j π_j, so the columns of link j are J_jᵀ A_j,
+    with J_j (6, m) the Jacobian of the link's velocity in its own axes. `jax.vmap` it over
+    states.
     """
     q, u, ud = _checked(tree, q, u, ud)
     bodies = tree.merge_fixed()  # the links welded by fixed joints: one body each
     n = len(bodies.links)
     t = jnp.zeros((), q.dtype)
+    (omega, velocity, alpha, accel), _ = link_motion(bodies, q, u, ud,
+                                                     bodies.gravity_vector(p, q.dtype))
 
-    def forces(parameters):
-        return newton_euler(bodies, t, q, u, ud, p, parameters.reshape(n, 10), loads=False)
+    def link_force(parameters, omega, velocity, alpha, accel):  # f_j (6,) of one link's π_j
+        mass, first_moment, inertia = (parameters[0], parameters[1:4],
+                                       inertia_at_origin(parameters))
+        moment_a, force_a = _momentum(mass, first_moment, inertia, alpha, accel)
+        moment_v, force_v = _momentum(mass, first_moment, inertia, omega, velocity)
+        moment_b, force_b = spatial.cross_force(omega, velocity, moment_v, force_v)
+        return jnp.concatenate([moment_a + moment_b, force_a + force_b])
 
-    regressor = jax.jacrev(forces)(jnp.zeros(10 * n, q.dtype)).reshape(-1, n, 10)
+    # A_j = ∂f_j/∂π_j (exact at π = 0: f_j is linear in π_j), (n, 6, 10)
+    body_regressors = jax.vmap(jax.jacfwd(link_force))(
+        jnp.zeros((n, 10), q.dtype), omega, velocity, alpha, accel)
+
+    def link_velocities(u):
+        _, _, omega, velocity = bodies.link_states(t, q, u, p)
+        return jnp.concatenate([omega, velocity], axis=-1)
+
+    jacobians = jax.jacfwd(link_velocities)(u)  # J_j (n, 6, m): linear in u, exact
+    regressor = jnp.einsum("jkm,jkc->mjc", jacobians, body_regressors)
     if bodies is tree:
         return regressor.reshape(-1, 10 * n)
     # A welded link's π enters its body's π linearly (`_transport`): Y_k = Y_body(k) T_k.
