@@ -221,7 +221,8 @@ def public_function(num_static: int = 1):
     per system, argument shapes and options (keyword options and the first `num_static`
     positional arguments — the system, a frame's name — are static; Python floats among the
     rest are traced, so that a new value reuses the program). Inside a caller's `jax.jit`,
-    `vmap` or `grad` it is traced once and inlined."""
+    `vmap` or `grad` it is traced once and inlined; under `vmap` it runs in chunks of a few
+    states (`jaxdyn._chunking`)."""
     def decorator(fn):
         @filter_jit
         def compiled(static, args, options):
