@@ -53,8 +53,8 @@ def inertia_at_origin(parameters):
 
 
 def _split(parameters):
-    """(m (N,), h = m c (N, 3), I_O (N, 3, 3)) from π (N, 10)."""
-    return parameters[:, 0], parameters[:, 1:4], inertia_at_origin(parameters)
+    """(m, h = m c, I_O) from π (…, 10): shapes (…), (…, 3), (…, 3, 3)."""
+    return parameters[..., 0], parameters[..., 1:4], inertia_at_origin(parameters)
 
 
 def _momentum(mass, first_moment, inertia, omega, velocity):
@@ -86,23 +86,26 @@ def link_motion(tree: RigidBodyTree, q, u, ud, gravity):
     return states, (rotation, origin)
 
 
-def newton_euler(tree: RigidBodyTree, t, q, u, ud, p, parameters=None, loads=True):
-    """τ = M u̇ + c(q, u) − g(q) − Jᵀ f^ext by the recursive Newton–Euler algorithm: the
-    forces along the speeds that produce the accelerations u̇ at (q, u). `parameters`: the
-    links' inertial parameters π (N, 10) in place of the tree's (τ is linear in them); `loads`:
-    whether the tree's link loads count as f^ext. Joint forces, springs and dampers are not
-    included (they are what the joints supply)."""
-    dtype = q.dtype
-    if parameters is None:
-        parameters = inertial_parameters(tree, p, dtype)
-    (omega, velocity, alpha, accel), (rotation, origin) = link_motion(
-        tree, q, u, ud, tree.gravity_vector(p, dtype))
+def _link_forces(parameters, omega, velocity, alpha, accel):
+    """(n, f): the spatial force each link needs for its motion, I a + v ×* I v, about its
+    origin in its axes, from its inertial parameters π (…, 10); linear in π."""
     mass, first_moment, inertia = _split(parameters)
     moment_a, force_a = _momentum(mass, first_moment, inertia, alpha, accel)
     moment_v, force_v = _momentum(mass, first_moment, inertia, omega, velocity)
     moment_b, force_b = spatial.cross_force(omega, velocity, moment_v, force_v)
-    moment, force = moment_a + moment_b, force_a + force_b
-    if loads and tree.loads:
+    return moment_a + moment_b, force_a + force_b
+
+
+def newton_euler(tree: RigidBodyTree, t, q, u, ud, p):
+    """τ = M u̇ + c(q, u) − g(q) − Jᵀ f^ext by the recursive Newton–Euler algorithm: the
+    forces along the speeds that produce the accelerations u̇ at (q, u). Joint forces, springs
+    and dampers are not included (they are what the joints supply)."""
+    dtype = q.dtype
+    (omega, velocity, alpha, accel), (rotation, origin) = link_motion(
+        tree, q, u, ud, tree.gravity_vector(p, dtype))
+    moment, force = _link_forces(inertial_parameters(tree, p, dtype), omega, velocity, alpha,
+                                 accel)
+    if tree.loads:
         external_moment, external_force = tree.load_wrenches(t, q, u, p)
         moment, force = moment - external_moment, force - external_force
 
@@ -155,12 +158,7 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
                                                      bodies.gravity_vector(p, q.dtype))
 
     def link_force(parameters, omega, velocity, alpha, accel):  # f_j (6,) of one link's π_j
-        mass, first_moment, inertia = (parameters[0], parameters[1:4],
-                                       inertia_at_origin(parameters))
-        moment_a, force_a = _momentum(mass, first_moment, inertia, alpha, accel)
-        moment_v, force_v = _momentum(mass, first_moment, inertia, omega, velocity)
-        moment_b, force_b = spatial.cross_force(omega, velocity, moment_v, force_v)
-        return jnp.concatenate([moment_a + moment_b, force_a + force_b])
+        return jnp.concatenate(_link_forces(parameters, omega, velocity, alpha, accel))
 
     # A_j = ∂f_j/∂π_j (exact at π = 0: f_j is linear in π_j), (n, 6, 10)
     body_regressors = jax.vmap(jax.jacfwd(link_force))(
