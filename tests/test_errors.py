@@ -475,16 +475,22 @@ def PENDULUM_BY_SCIPY(ts):
     return solution.sol(ts)[0]
 
 
-def test_import_chooses_xla_cpu_emitters_or_says_it_could_not():
+def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
     """`import jaxdyn` turns XLA's CPU fusion emitters off (on the straight-line programs of
-    small systems they generate code up to thousands of times slower), keeps a user's own
-    choice, and warns, naming the switch, when JAX started before jaxdyn was imported."""
+    small systems they generate code up to thousands of times slower) and YNNPACK fusions (on
+    the small batched block products of a tree's recursions several times slower), keeps a
+    user's own choice of either, and warns, naming both switches, when JAX started before
+    jaxdyn was imported."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    ours = "--xla_cpu_use_fusion_emitters=false --xla_cpu_experimental_ynn_fusion_type="
     scripts = {
         "first": ("import os, jaxdyn, jax.numpy as jnp; jnp.ones(1); "
                   "print(os.environ['XLA_FLAGS'])", {}),
         "chosen": ("import os, jaxdyn; print(os.environ['XLA_FLAGS'])",
                    {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}),
+        "both chosen": ("import os, jaxdyn; print(os.environ['XLA_FLAGS'])",
+                        {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=dot "
+                                      "--xla_cpu_use_fusion_emitters=true"}),
         "late": ("import jax.numpy as jnp; jnp.ones(1); import jaxdyn", {}),
     }
     running = {name: subprocess.Popen([sys.executable, "-W", "error", "-c", code],
@@ -493,10 +499,13 @@ def test_import_chooses_xla_cpu_emitters_or_says_it_could_not():
                for name, (code, extra) in scripts.items()}
     done = {name: (process.wait(), *process.communicate()) for name, process in running.items()}
     assert done["first"][0] == 0, done["first"][2]
-    assert done["first"][1].strip() == "--xla_cpu_use_fusion_emitters=false"
-    assert done["chosen"][1].strip() == "--xla_cpu_use_fusion_emitters=true"
+    assert done["first"][1].strip() == ours
+    assert done["chosen"][1].strip() == ("--xla_cpu_use_fusion_emitters=true "
+                                         "--xla_cpu_experimental_ynn_fusion_type=")
+    assert done["both chosen"][1].strip() == ("--xla_cpu_experimental_ynn_fusion_type=dot "
+                                              "--xla_cpu_use_fusion_emitters=true")
     assert done["late"][0] != 0
-    assert "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false" in done["late"][2]
+    assert f'XLA_FLAGS="{ours}"' in done["late"][2]
 
 
 def test_float32_by_default_warns_once_naming_the_switch_unless_chosen():

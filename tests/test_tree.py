@@ -20,7 +20,7 @@ import jaxdyn
 import jaxdyn._chunking
 import jaxdyn._system.tree
 
-from helpers import assert_close, central_difference_params
+from helpers import assert_close, central_difference, central_difference_params
 
 pin = pytest.importorskip("pinocchio")
 yourdfpy = pytest.importorskip("yourdfpy")
@@ -423,6 +423,52 @@ def _floating_arm():
         jaxdyn.Link("hand", jaxdyn.Spherical(), parent="lower", translation=(0.0, 0.0, 0.4),
                     mass=0.3, com=(0.0, 0.0, 0.05), inertia=0.05 * inertia),
     ])
+
+
+def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
+    """Trees too large for straight-line code run their recursions level by level (links of
+    one depth together) and the articulated-body algorithm in ground axes: a floating base
+    taken before the scan, two branches of different depths, a ball joint widening the
+    scanned links to three columns (revolute links padded), and a force on a link. Forward
+    dynamics against Kane's equations of the same tree (`LOOP_MAX` lowered so that the tree
+    is scanned), and the derivatives in q, u against central differences."""
+    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
+    inertia = jnp.asarray(INERTIA)
+    arm = _floating_arm()
+    tree = jaxdyn.RigidBodyTree(list(arm.links) + [
+        jaxdyn.Link("leg", jaxdyn.Revolute((0, 0, 1)), parent="base",
+                    translation=(-0.2, 0.1, 0.0), mass=0.8, com=(0.0, -0.2, 0.0),
+                    inertia=0.3 * inertia),
+        jaxdyn.Link("foot", jaxdyn.Prismatic((0, 1, 0)), parent="leg",
+                    translation=(0.0, -0.4, 0.0), mass=0.2, com=(0.05, 0.0, 0.0),
+                    inertia=0.02 * inertia),
+        jaxdyn.Link("finger", jaxdyn.Revolute((0, 1, 0)), parent="lower",
+                    translation=(0.1, 0.0, 0.4), mass=0.1, com=(0.0, 0.0, 0.05),
+                    inertia=0.01 * inertia),
+    ], gravity=jnp.array([0.0, 0.0, -9.81]), loads=[jaxdyn.LinkLoad(
+        "hand", force=lambda q, u, p: jnp.array([0.3, -0.2, 0.5]) * (1 + q[0]),
+        torque=lambda q, u, p: jnp.array([0.1, 0.0, -0.05]) * u[2], point=(0.0, 0.05, 0.1))])
+    assert tree.scan_head() == 1 and not tree._is_chain()
+    q = np.asarray(tree.neutral_configuration())
+    rng = np.random.default_rng(5)
+    q = q + rng.uniform(-0.4, 0.4, q.shape)
+    q[3:7] /= np.linalg.norm(q[3:7])
+    q[9:13] /= np.linalg.norm(q[9:13])
+    q[:3] += [3.0, -2.0, 1.0]  # away from the world's origin
+    u = rng.uniform(-1, 1, tree.num_speeds)
+    aba = jaxdyn.ArticulatedBody(tree)
+    expected = jaxdyn.Kane.from_system(tree).accelerations(0.0, q, u, None)
+    assert_close(aba.accelerations(0.0, q, u, None), expected, rtol=0,
+                 atol=1e-10 * np.max(np.abs(expected)))
+
+    def accelerations(q, u):
+        return aba.accelerations(0.0, q, u, None, throw=False)
+
+    d_dq, d_du = jax.jacfwd(accelerations, argnums=(0, 1))(q, u)
+    assert_close(d_dq, central_difference(lambda x: accelerations(x, u), q), rtol=0,
+                 atol=1e-6 * np.max(np.abs(d_dq)))
+    assert_close(d_du, central_difference(lambda x: accelerations(q, x), u), rtol=0,
+                 atol=1e-6 * np.max(np.abs(d_du)))
 
 
 @pytest.mark.slow

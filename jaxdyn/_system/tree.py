@@ -17,7 +17,7 @@ order for large ones, so that compile time does not grow with the number of link
 """
 
 import dataclasses
-from typing import Callable, overload
+from typing import Any, Callable, overload
 
 import equinox as eqx
 import jax
@@ -58,14 +58,65 @@ def _value(x, p):
     return jnp.asarray(x(p) if callable(x) else x)
 
 
-def _buffer(template, parents):
-    """`template` repeated for every link and the world (last), and each link's parent's slot:
-    the state of a recursion over a general tree, indexed by link inside a scan."""
-    n = len(parents)
-    buffer = jax.tree_util.tree_map(
-        lambda x: jnp.broadcast_to(x, (n + 1,) + jnp.shape(x)).astype(jnp.result_type(x)),
-        template)
-    return buffer, np.array([n if parent < 0 else parent for parent in parents])
+class _Levels:
+    """The links of a tree beyond its first `head` taken level by level (their depth below
+    the links before them), each level padded to the widest: `slots` (L, W) the link (counted
+    from `head`) in each slot, padding slots repeating the last link (a leaf, so that a
+    padded slot computes what a real leaf would); `parent_slots` (L, W) each slot's parent in
+    the level above (for the first level, its entry in `roots_parents`); `children` (L, W, K)
+    each slot's children in the level below, W where there is none (a row of zeros)."""
+
+    def __init__(self, parents, head):
+        n = len(parents)
+        depth = {}
+        for i in range(head, n):
+            depth[i] = 0 if parents[i] < head else depth[parents[i]] + 1
+        members = [[i for i in range(head, n) if depth[i] == d]
+                   for d in range(max(depth.values()) + 1)]
+        self.width = width = max(len(level) for level in members)
+        slot_of = {i: s for level in members for s, i in enumerate(level)}
+        self.num_roots = len(members[0])
+        self.roots_parents = [parents[i] for i in members[0]] + [-1] * (width - len(members[0]))
+        pad = n - 1 - head
+        self.slots = np.array([[i - head for i in level] + [pad] * (width - len(level))
+                               for level in members], dtype=np.int32)
+        self.parent_slots = np.array(
+            [list(range(width))] + [[slot_of[parents[i]] for i in level]
+                                    + [0] * (width - len(level)) for level in members[1:]],
+            dtype=np.int32)
+        kids = [[[slot_of[c] for c in range(head, n) if parents[c] == i] for i in level]
+                for level in members]
+        most = max(1, max(len(k) for level in kids for k in level))
+        self.children = np.full((len(members), width, most), width, dtype=np.int32)
+        for d, level in enumerate(kids):
+            for s, k in enumerate(level):
+                self.children[d, s, :len(k)] = k
+        flat = {i: d * width + s for d, level in enumerate(members) for s, i in enumerate(level)}
+        self.order = np.array([flat[i] for i in range(head, n)], dtype=np.int32)
+
+    def by_slot(self, x):
+        """Per-link data (N − head, …) → (L, W, …)."""
+        return x[self.slots]
+
+    def by_link(self, x):
+        """Per-slot results (L, W, …) → (N − head, …) in link order."""
+        return x.reshape((-1,) + x.shape[2:])[self.order]
+
+
+def _levels(parents, head):
+    return _Levels(tuple(parents), head)
+
+
+def _stacked(first, rest) -> Any:
+    """The states or outputs of a recursion, the head's (a list) and the rest's (stacked, or
+    None), stacked over all links."""
+    tree_map = jax.tree_util.tree_map
+    if not first:
+        return rest
+    stacked = tree_map(lambda *xs: jnp.stack(xs), *first)
+    if rest is None:
+        return stacked
+    return tree_map(lambda x, y: jnp.concatenate([x.astype(y.dtype), y]), stacked, rest)
 
 
 @overload
@@ -92,14 +143,6 @@ def checked_state(tree, q, u=None, ud=None):
     if ud is not None:
         ud = check_vector(ud, "u̇ (ud)", tree.num_speeds)
     return q, u, ud
-
-
-def _get(buffer, i):
-    return jax.lax.dynamic_index_in_dim(buffer, i, keepdims=False)
-
-
-def _set(buffer, i, value):
-    return jax.lax.dynamic_update_index_in_dim(buffer, value.astype(buffer.dtype), i, 0)
 
 
 class Link(eqx.Module):
@@ -433,49 +476,68 @@ class RigidBodyTree(AbstractMultibody):
     def forward(self, step, root, per_link):
         """The parent-to-child recursion: state_i = step(state of parent(i), per_link[i]), with
         `root` the world's state; returns the stacked states of the links."""
-        parents, tree_map = self.parents, jax.tree_util.tree_map
-        n, head = len(parents), self.scan_head()
-        states = []
-        for i in range(head):
-            states.append(step(root if parents[i] < 0 else states[parents[i]],
-                               tree_map(lambda x: x[i], per_link)))
-        if head == n:
-            return tree_map(lambda *xs: jnp.stack(xs), *states)
-        rest = tree_map(lambda x: x[head:], per_link)
-        if self._is_chain():  # the carry is the parent's state: no buffer to index
-            def chain_body(previous, data):
-                state = step(previous, data)
-                return state, state
+        head = self.scan_head()
+        tree_map = jax.tree_util.tree_map
 
-            scanned = jax.lax.scan(chain_body, states[-1] if states else root, rest)[1]
-        else:
-            buffer, parent_index = _buffer(root, parents)  # the world in the last slot
-            for i, state in enumerate(states):
-                buffer = tree_map(lambda b, x: _set(b, i, x), buffer, state)
+        def passed_on(parent, data):
+            state = step(parent, data)
+            return state, state
 
-            def body(buffer, xs):
-                i, parent, data = xs
-                state = step(tree_map(lambda b: _get(b, parent), buffer), data)
-                return tree_map(lambda b, x: _set(b, i, x), buffer, state), None
-
-            buffer, _ = jax.lax.scan(body, buffer, (np.arange(head, n), parent_index[head:],
-                                                    rest))
-            scanned = tree_map(lambda b: b[head:n], buffer)
-        if not states:
-            return scanned
-        return tree_map(lambda x, *xs: jnp.concatenate([jnp.stack(xs).astype(x.dtype), x]),
-                        scanned, *states)
+        first, rest = self.forward_split(passed_on, root, [tree_map(lambda x: x[i], per_link)
+                                                           for i in range(head)],
+                                         tree_map(lambda x: x[head:], per_link))
+        return _stacked(first, rest)
 
     def backward(self, step, zero, per_link):
         """The child-to-parent recursion, links in reverse order: (out_i, to_parent_i) =
         step(acc_i, per_link[i]), where acc_i is `zero` plus what the children of i passed up.
         Returns the stacked outputs and what the roots passed to the world."""
+        head = self.scan_head()
+        tree_map = jax.tree_util.tree_map
+        first, rest, world = self.backward_split(
+            step, zero, [tree_map(lambda x: x[i], per_link) for i in range(head)],
+            tree_map(lambda x: x[head:], per_link))
+        return _stacked(first, rest), world
+
+    def forward_split(self, step, root, head_links, rest):
+        """The parent-to-child recursion with the data of the first `scan_head()` links given
+        one by one (a list: each may have its own shapes, such as a floating base's six
+        columns) and the rest's stacked (or None when there is no rest): (state_i, out_i) =
+        step(state of parent(i), data_i), the state passed to the children (of the same shape
+        for every link of the scan and for the roots it hangs from). Returns the outputs the
+        same way, a list and stacked."""
         parents, tree_map = self.parents, jax.tree_util.tree_map
-        n, head = len(parents), self.scan_head()
+        n, head = len(parents), len(head_links)
+        states, outputs = [], []
+        for i in range(head):
+            state, out = step(root if parents[i] < 0 else states[parents[i]], head_links[i])
+            states.append(state)
+            outputs.append(out)
+        if head == n:
+            return outputs, None
+        if self._is_chain():  # the carry is the parent's state: no level to gather from
+            return outputs, jax.lax.scan(step, states[-1] if states else root, rest)[1]
+        # Level by level (links of one depth below the head together, `_Levels`): the carry
+        # is the previous level's states, each link's parent gathered from it.
+        levels = _levels(parents, head)
+        before = [root if parent < 0 else states[parent] for parent in levels.roots_parents]
+
+        def body(previous, xs):
+            parent_slot, data = xs
+            return jax.vmap(step)(tree_map(lambda x: x[parent_slot], previous), data)
+
+        scanned = jax.lax.scan(body, tree_map(lambda *xs: jnp.stack(xs), *before),
+                               (levels.parent_slots, tree_map(levels.by_slot, rest)))[1]
+        return outputs, tree_map(levels.by_link, scanned)
+
+    def backward_split(self, step, zero, head_links, rest):
+        """`backward` with the data split as in `forward_split`: returns the head's outputs (a
+        list), the rest's (stacked, or None) and what the roots passed to the world."""
+        parents, tree_map = self.parents, jax.tree_util.tree_map
+        n, head = len(parents), len(head_links)
         accumulated = [zero] * (n + 1)  # the last for the world
         scanned = None
         if head < n:
-            rest = tree_map(lambda x: x[head:], per_link)
             if self._is_chain():  # the carry is what the child passes up
                 def chain_body(carry, data):
                     out, up = step(carry, data)
@@ -483,32 +545,34 @@ class RigidBodyTree(AbstractMultibody):
 
                 up, scanned = jax.lax.scan(chain_body, zero, rest, reverse=True)
                 accumulated[head - 1 if head else n] = up
-            else:
-                buffer, parent_index = _buffer(zero, parents)  # the world in the last slot
+            else:  # level by level, leaves first: the carry is what the level below passes up
+                levels = _levels(parents, head)
 
-                def body(buffer, xs):
-                    i, parent, data = xs
-                    out, up = step(tree_map(lambda b: _get(b, i), buffer), data)
-                    buffer = tree_map(lambda b, x: _set(b, parent, _get(b, parent) + x),
-                                      buffer, up)
-                    return buffer, out
+                def body(below, xs):
+                    children, data = xs
+                    # each slot's children's contributions summed (W: the row of zeros)
+                    total = tree_map(
+                        lambda z, b: z[None] + jnp.sum(jnp.concatenate(
+                            [b, jnp.zeros_like(b[:1])])[children], axis=1), zero, below)
+                    out, up = jax.vmap(step)(total, data)
+                    return up, out
 
-                buffer, scanned = jax.lax.scan(
-                    body, buffer, (np.arange(head, n), parent_index[head:], rest), reverse=True)
-                for i in [*range(head), n]:
-                    accumulated[i] = tree_map(lambda b: b[i], buffer)
+                nothing = tree_map(lambda z: jnp.zeros((levels.width,) + jnp.shape(z),
+                                                       jnp.result_type(z)), zero)
+                up, scanned = jax.lax.scan(body, nothing, (levels.children,
+                                                           tree_map(levels.by_slot, rest)),
+                                           reverse=True)
+                scanned = tree_map(levels.by_link, scanned)
+                for slot, parent in enumerate(levels.roots_parents[:levels.num_roots]):
+                    target = n if parent < 0 else parent
+                    accumulated[target] = tree_map(lambda a, x: a + x[slot],
+                                                   accumulated[target], up)
         outputs = [None] * head
         for i in reversed(range(head)):
-            outputs[i], up = step(accumulated[i], tree_map(lambda x: x[i], per_link))
+            outputs[i], up = step(accumulated[i], head_links[i])
             target = n if parents[i] < 0 else parents[i]
             accumulated[target] = tree_map(jnp.add, accumulated[target], up)
-        if not outputs:
-            return scanned, accumulated[n]
-        stacked = tree_map(lambda *xs: jnp.stack(xs), *outputs)
-        if scanned is not None:
-            stacked = tree_map(lambda x, y: jnp.concatenate([x, y.astype(x.dtype)]), stacked,
-                               scanned)
-        return stacked, accumulated[n]
+        return outputs, scanned, accumulated[n]
 
     def link_states(self, t, q, u, p):
         """World poses and velocities of the links: (R_WC (N, 3, 3), r_WC (N, 3), ω (N, 3),
