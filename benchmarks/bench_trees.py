@@ -286,6 +286,7 @@ def robots(names):
         tree, p = jaxdyn.from_urdf(path, floating=floating, parameters=False,
                                    damping=False)  # none in Pinocchio's or MJX's model
         aba = jaxdyn.ArticulatedBody(tree)
+        bodies = tree.merge_fixed()
         model = (pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer()) if floating
                  else pin.buildModelFromUrdf(path))
         data = model.createData()
@@ -321,8 +322,12 @@ def robots(names):
             f"Jacobian of {frame}": (
                 lambda q, u, ud: jaxdyn.frame_jacobian(tree, frame, q),
                 lambda q, v, a: pin.computeFrameJacobian(model, data, q, frame_id, world)),
-            "torque regressor": (
+            "torque regressor, every URDF link": (
                 lambda q, u, ud: jaxdyn.inverse_dynamics_regressor(tree, q, u, ud),
+                lambda q, v, a: pin.computeJointTorqueRegressor(model, data, q, v, a)),
+            # Pinocchio's columns: one body per joint, fixed links welded in (merge_fixed)
+            "torque regressor, welded bodies": (
+                lambda q, u, ud: jaxdyn.inverse_dynamics_regressor(bodies, q, u, ud),
                 lambda q, v, a: pin.computeJointTorqueRegressor(model, data, q, v, a)),
         }
         print(f"{name.split('/')[-1]} (nq {tree.num_coordinates}, nv {tree.num_speeds}, "
