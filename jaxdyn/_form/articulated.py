@@ -61,6 +61,9 @@ class ArticulatedBody(AbstractDynamics):
     formed by the composite-rigid-body algorithm (§6.2) and `forcing` by the recursive
     Newton–Euler algorithm at u̇ = 0 (§5.3).
     All three run on the tree with its fixed joints welded (`RigidBodyTree.merge_fixed`).
+    Trees whose recursions run level by level (more than 24 bodies: humanoids) take the
+    articulated-body algorithm in ground axes, world axes about the first link's origin, where
+    every X_i is the identity and S_i, I_i turn with the links.
     This is the fast formulation for trees; the others agree with it to round-off.
 
     **Arguments:**
