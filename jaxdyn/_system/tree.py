@@ -65,13 +65,59 @@ def _value(x, p):
     return jnp.asarray(x(p) if callable(x) else x)
 
 
+# A band of levels costs its levels × its width in link-steps; a further band, about this many
+# more (its scans' set-up and the hand-over between bands).
+BAND_COST = 6
+
+
+class _Band:
+    """Consecutive levels of a tree taken together in one scan, each padded to the band's
+    widest: `slots` (L, W) the link (counted from the head) in each slot, padding slots
+    repeating the last link (a leaf, so that a padded slot computes what a real leaf would);
+    `parent_slots` (L, W) each slot's parent in the level above, the identity for the band's
+    first level, whose parents `entry` (W,) picks from the previous band's last level (in the
+    first band: `roots_parents`, the links before the scan or the world); `children`
+    (L, W, K) each slot's children in the level below, W where there is none (a row of
+    zeros), and for the band's last level, unless it is the tree's, the identity: what its
+    children in the next band passed up, `handoff` (W, K) picks and sums before the scan."""
+
+    def __init__(self, levels, slot_of, parents, head, pad, following):
+        self.width = width = max(len(level) for level in levels)
+        self.slots = np.array([[i - head for i in level] + [pad] * (width - len(level))
+                               for level in levels], dtype=np.int32)
+        self.entry = np.array([slot_of[parents[i]] if parents[i] >= head else 0
+                               for i in levels[0]] + [0] * (width - len(levels[0])),
+                              dtype=np.int32)
+        self.roots_parents = [parents[i] for i in levels[0]] + [-1] * (width - len(levels[0]))
+        self.parent_slots = np.array(
+            [list(range(width))] + [[slot_of[parents[i]] for i in level]
+                                    + [0] * (width - len(level)) for level in levels[1:]],
+            dtype=np.int32)
+        below = levels[1:] + ([following] if following else [])
+        kids = [[[slot_of[c] for c in level_below if parents[c] == i] for i in level]
+                for level, level_below in zip(levels, below)]
+        most = max([1] + [len(k) for level in kids for k in level])
+        self.children = np.full((len(levels), width, most), width, dtype=np.int32)
+        for d, level in enumerate(kids[:len(levels) - (1 if following else 0)]):
+            for s, k in enumerate(level):
+                self.children[d, s, :len(k)] = k
+        self.handoff = np.full((width, most), -1, dtype=np.int32)  # −1: no child
+        if following:
+            self.children[-1, :, 0] = np.arange(width)
+            for s, k in enumerate(kids[-1]):
+                self.handoff[s, :len(k)] = k
+
+    def by_slot(self, x):
+        """Per-link data (N − head, …) → (L, W, …)."""
+        return x[self.slots]
+
+
 class _Levels:
     """The links of a tree beyond its first `head` taken level by level (their depth below
-    the links before them), each level padded to the widest: `slots` (L, W) the link (counted
-    from `head`) in each slot, padding slots repeating the last link (a leaf, so that a
-    padded slot computes what a real leaf would); `parent_slots` (L, W) each slot's parent in
-    the level above (for the first level, its entry in `roots_parents`); `children` (L, W, K)
-    each slot's children in the level below, W where there is none (a row of zeros)."""
+    the links before them), the levels grouped into bands of consecutive levels (`_Band`) so
+    that narrow levels are not padded to the width of the widest: the bands minimise the
+    link-steps of the padded levels, plus `BAND_COST` per band (Talos: levels of 3, 3, 5, 5,
+    4, 4, 2, 2, 2, 8, 6 links)."""
 
     def __init__(self, parents, head):
         n = len(parents)
@@ -80,34 +126,36 @@ class _Levels:
             depth[i] = 0 if parents[i] < head else depth[parents[i]] + 1
         members = [[i for i in range(head, n) if depth[i] == d]
                    for d in range(max(depth.values()) + 1)]
-        self.width = width = max(len(level) for level in members)
         slot_of = {i: s for level in members for s, i in enumerate(level)}
-        self.num_roots = len(members[0])
-        self.roots_parents = [parents[i] for i in members[0]] + [-1] * (width - len(members[0]))
+        # cheapest split of the levels into bands (dynamic programming over the cut points)
+        count = len(members)
+        best = [0.0] + [np.inf] * count
+        cut = [0] * (count + 1)
+        for j in range(1, count + 1):
+            for i in range(j):
+                cost = best[i] + (j - i) * max(len(m) for m in members[i:j]) + BAND_COST
+                if cost < best[j]:
+                    best[j], cut[j] = cost, i
+        edges, j = [], count
+        while j:
+            edges.append((cut[j], j))
+            j = cut[j]
+        edges.reverse()
         pad = n - 1 - head
-        self.slots = np.array([[i - head for i in level] + [pad] * (width - len(level))
-                               for level in members], dtype=np.int32)
-        self.parent_slots = np.array(
-            [list(range(width))] + [[slot_of[parents[i]] for i in level]
-                                    + [0] * (width - len(level)) for level in members[1:]],
-            dtype=np.int32)
-        kids = [[[slot_of[c] for c in range(head, n) if parents[c] == i] for i in level]
-                for level in members]
-        most = max(1, max(len(k) for level in kids for k in level))
-        self.children = np.full((len(members), width, most), width, dtype=np.int32)
-        for d, level in enumerate(kids):
-            for s, k in enumerate(level):
-                self.children[d, s, :len(k)] = k
-        flat = {i: d * width + s for d, level in enumerate(members) for s, i in enumerate(level)}
+        self.bands = [_Band(members[i:j], slot_of, parents, head, pad,
+                            members[j] if j < count else None) for i, j in edges]
+        offsets = np.cumsum([0] + [b.slots.size for b in self.bands])
+        flat = {}
+        for band, offset, (i, j) in zip(self.bands, offsets, edges):
+            for d, level in enumerate(members[i:j]):
+                for s, link in enumerate(level):
+                    flat[link] = offset + d * band.width + s
         self.order = np.array([flat[i] for i in range(head, n)], dtype=np.int32)
+        self.num_roots = len(members[0])
 
-    def by_slot(self, x):
-        """Per-link data (N − head, …) → (L, W, …)."""
-        return x[self.slots]
-
-    def by_link(self, x):
-        """Per-slot results (L, W, …) → (N − head, …) in link order."""
-        return x.reshape((-1,) + x.shape[2:])[self.order]
+    def by_link(self, *per_band):
+        """The bands' per-slot results (L_b, W_b, …) → (N − head, …) in link order."""
+        return jnp.concatenate([x.reshape((-1,) + x.shape[2:]) for x in per_band])[self.order]
 
 
 def _levels(parents, head):
@@ -527,15 +575,22 @@ class RigidBodyTree(AbstractMultibody):
         # Level by level (links of one depth below the head together, `_Levels`): the carry
         # is the previous level's states, each link's parent gathered from it.
         levels = _levels(parents, head)
-        before = [root if parent < 0 else states[parent] for parent in levels.roots_parents]
 
         def body(previous, xs):
             parent_slot, data = xs
             return jax.vmap(step)(tree_map(lambda x: x[parent_slot], previous), data)
 
-        scanned = jax.lax.scan(body, tree_map(lambda *xs: jnp.stack(xs), *before),
-                               (levels.parent_slots, tree_map(levels.by_slot, rest)))[1]
-        return outputs, tree_map(levels.by_link, scanned)
+        scanned, last = [], None
+        for band in levels.bands:
+            if last is None:
+                start = tree_map(lambda *xs: jnp.stack(xs), *[
+                    root if parent < 0 else states[parent] for parent in band.roots_parents])
+            else:
+                start = tree_map(lambda x: x[band.entry], last)
+            last, out = jax.lax.scan(body, start, (band.parent_slots,
+                                                   tree_map(band.by_slot, rest)))
+            scanned.append(out)
+        return outputs, tree_map(levels.by_link, *scanned)
 
     def backward_split(self, step, zero, head_links, rest):
         """`backward` with the data split as in `forward_split`: returns the head's outputs (a
@@ -555,22 +610,31 @@ class RigidBodyTree(AbstractMultibody):
             else:  # level by level, leaves first: the carry is what the level below passes up
                 levels = _levels(parents, head)
 
+                def summed(below, children):  # each slot's children's (W: a row of zeros)
+                    return tree_map(lambda b: jnp.sum(jnp.concatenate(
+                        [b, jnp.zeros_like(b[:1])])[children], axis=1), below)
+
                 def body(below, xs):
                     children, data = xs
-                    # each slot's children's contributions summed (W: the row of zeros)
-                    total = tree_map(
-                        lambda z, b: z[None] + jnp.sum(jnp.concatenate(
-                            [b, jnp.zeros_like(b[:1])])[children], axis=1), zero, below)
+                    total = tree_map(lambda z, s: z[None] + s, zero, summed(below, children))
                     out, up = jax.vmap(step)(total, data)
                     return up, out
 
-                nothing = tree_map(lambda z: jnp.zeros((levels.width,) + jnp.shape(z),
-                                                       jnp.result_type(z)), zero)
-                up, scanned = jax.lax.scan(body, nothing, (levels.children,
-                                                           tree_map(levels.by_slot, rest)),
-                                           reverse=True)
-                scanned = tree_map(levels.by_link, scanned)
-                for slot, parent in enumerate(levels.roots_parents[:levels.num_roots]):
+                per_band, up = [None] * len(levels.bands), None
+                for b in reversed(range(len(levels.bands))):
+                    band = levels.bands[b]
+                    if up is None:  # the tree's last level: nothing below
+                        start = tree_map(lambda z: jnp.zeros((band.width,) + jnp.shape(z),
+                                                             jnp.result_type(z)), zero)
+                    else:  # what the next band's first level passed up, summed per parent
+                        width_below = jax.tree_util.tree_leaves(up)[0].shape[0]
+                        start = summed(up, np.where(band.handoff < 0, width_below,
+                                                    band.handoff))
+                    up, per_band[b] = jax.lax.scan(body, start, (band.children,
+                                                                 tree_map(band.by_slot, rest)),
+                                                   reverse=True)
+                scanned = tree_map(levels.by_link, *per_band)
+                for slot, parent in enumerate(levels.bands[0].roots_parents[:levels.num_roots]):
                     target = n if parent < 0 else parent
                     accumulated[target] = tree_map(lambda a, x: a + x[slot],
                                                    accumulated[target], up)
