@@ -14,12 +14,12 @@ where (ω_J, v_J) = S u is the joint's own motion. The joints of one type are ev
 together; the recursion itself runs as a Python loop for small trees (straight-line code, which
 `jaxdyn._unroll` turns into a few kernels) and as a `lax.scan` for large ones, so that compile
 time does not grow with the number of links: over the links of a chain (the carry is the
-parent's state), and over the levels of a branched tree (the links of one depth together, each
-gathering its parent's state from the level above, or summing what its children pass up from
-the level below). A humanoid of 30 bodies is ten levels of at most four links: ten steps of
-four links' arithmetic at once rather than thirty steps of one, each of which would also read
-and write a buffer of every link's state (per state in a batch, G1's forward dynamics
-30.6 → 12.4 µs).
+parent's state), and over the levels of a branched tree (the links of one depth together,
+each gathering its parent's state from the level above, or summing what its children pass up
+from the level below; consecutive levels of similar width in one scan, `_Levels`). A humanoid
+of 30 bodies is ten levels of at most four links: ten steps of four links' arithmetic at once
+rather than thirty steps of one, each of which would also read and write a buffer of every
+link's state (per state in a batch, G1's forward dynamics 30.6 → 12.4 µs).
 """
 
 import dataclasses
