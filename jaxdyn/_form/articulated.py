@@ -24,14 +24,16 @@ def _skew(v):
                       jnp.stack([-y, x, zero], -1)], -2)
 
 
+def _block(a, b, c, d):
+    """[[a, b], [c, d]] from 3 × 3 blocks."""
+    return jnp.concatenate([jnp.concatenate([a, b], -1), jnp.concatenate([c, d], -1)], -2)
+
+
 def motion_transform(rotation, origin):
     """X (6 × 6) mapping motion vectors (ω, v) from the parent to the child frame:
     [[Rᵀ, 0], [−Rᵀ r×, Rᵀ]] (its transpose maps force vectors back)."""
     rt = jnp.swapaxes(rotation, -1, -2)
-    zero = jnp.zeros_like(rt)
-    top = jnp.concatenate([rt, zero], -1)
-    return jnp.concatenate([top, jnp.concatenate([-spatial.matmul(rt, _skew(origin)), rt], -1)],
-                           -2)
+    return _block(rt, jnp.zeros_like(rt), -spatial.matmul(rt, _skew(origin)), rt)
 
 
 def spatial_inertia(mass, first_moment, inertia):
@@ -40,8 +42,7 @@ def spatial_inertia(mass, first_moment, inertia):
     I (ω, v) = (I_O ω + h × v, m v + ω × h)."""
     h = _skew(first_moment)
     m = mass[..., None, None] * jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape)
-    return jnp.concatenate([jnp.concatenate([inertia, h], -1),
-                            jnp.concatenate([jnp.swapaxes(h, -1, -2), m], -1)], -2)
+    return _block(inertia, h, jnp.swapaxes(h, -1, -2), m)
 
 
 class ArticulatedBody(AbstractDynamics):
@@ -264,13 +265,10 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
 
     # 2. accelerations outwards, from the world's (0, −g): a_i = a'_i + S_i u̇_i with
     # a'_i = X_i a_λ(i) + c_i and u̇_i = D_i⁻¹ τ'_i − (U_i D_i⁻¹)ᵀ a'_i
-    def joint_accelerations(before, ud_inv, d_inv_residual):
-        return d_inv_residual - _matvec6(jnp.swapaxes(ud_inv, -1, -2), before)
-
     def accelerations_out(parent, link):
         c, s, ud_inv, d_inv_residual, _, *x = link
         before = (_matvec6(x[0], parent) if x else parent) + c
-        udot = joint_accelerations(before, ud_inv, d_inv_residual)
+        udot = d_inv_residual - _matvec6(jnp.swapaxes(ud_inv, -1, -2), before)
         return before + _matvec6(s, udot), udot
 
     gravity = tree.gravity_vector(p, dtype)
