@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import jaxdyn
+from compile_settings import default_environment
 from helpers import central_difference
 
 OSCILLATOR = jaxdyn.Lagrangian(kinetic=lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
@@ -78,6 +79,7 @@ def test_vmapped_simulate_with_a_nan_member_and_throw_false(members):
                                atol=CLOSED_FORM_ATOL)
 
 
+@pytest.mark.usefixtures("xla_defaults")  # bit for bit in the programs users run
 def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
     x0, v0, k = members["x0"][:, None], members["v0"][:, None], members["k"]
     p = {"m": 1.0, "k": k}
@@ -236,7 +238,7 @@ unsharded = np.asarray(jax.jit(jax.vmap(lambda x, v, k: jaxdyn.simulate(
 
 
 def _python(script, env=None, timeout=300):
-    return subprocess.Popen([sys.executable, "-c", script], env={**os.environ, **(env or {})},
+    return subprocess.Popen([sys.executable, "-c", script], env=default_environment(env),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
