@@ -16,7 +16,8 @@ incompatible mujoco otherwise); without MuJoCo those columns are left out.
   (unchecked and the default checked call), mass matrix, inverse dynamics, a frame Jacobian
   and the torque regressor, each per state in a jitted vmap over 1024 states, against
   Pinocchio's aba, crba, rnea, computeFrameJacobian and computeJointTorqueRegressor called
-  from Python, and MJX's forward dynamics (the same URDF without meshes) where installed;
+  from Python, and MJX's forward dynamics (the same URDF without meshes, bodies on fixed
+  joints fused into their parents) where installed;
 - per formulation: `ArticulatedBody` (the default for trees), and Kane, Gibbs–Appell and
   Lagrange for chains up to N = 20 (their cost grows faster; compile and in-loop only).
 
@@ -116,7 +117,7 @@ def robot_mjcf(path, floating):
         for tag in ("visual", "collision"):
             for element in link.findall(tag):
                 link.remove(element)
-    for joint in root.iter("joint"):
+    for joint in root.findall("joint"):  # not a transmission's
         for tag in ("dynamics", "mimic", "safety_controller", "calibration"):
             for element in joint.findall(tag):
                 joint.remove(element)
@@ -124,20 +125,38 @@ def robot_mjcf(path, floating):
             limit.attrib.pop("lower", None)
             limit.attrib.pop("upper", None)
     if floating:
-        children = {j.find("child").get("link") for j in root.iter("joint")}
+        children = {j.find("child").get("link") for j in root.findall("joint")}
         base = next(link.get("name") for link in root.iter("link")
                     if link.get("name") not in children)
         ET.SubElement(root, "link", name="mjx_world")
         joint = ET.SubElement(root, "joint", name="mjx_free", type="floating")
         ET.SubElement(joint, "parent", link="mjx_world")
         ET.SubElement(joint, "child", link=base)
+    # MuJoCo refuses principal moments that break the triangle inequality (A + B < C), which
+    # ANYmal-C's four depth cameras and its hatch (moments 0, 0, 3e-3) carry: raised just
+    # enough to meet it for MuJoCo. Jaxdyn and Pinocchio take the file's values; the
+    # computation costs the same.
+    balanced = False
+    for inertia in root.iter("inertia"):
+        keys = ("ixx", "ixy", "ixz", "ixy", "iyy", "iyz", "ixz", "iyz", "izz")
+        matrix = np.array([float(inertia.get(k, 0.0)) for k in keys]).reshape(3, 3)
+        moments, axes = np.linalg.eigh(matrix)
+        if moments[2] <= 0 or (moments[0] + moments[1] >= moments[2] and moments[0] > 0):
+            continue  # massless, or a valid inertia
+        balanced = True
+        middle = max(moments[1], moments[2] / 2)
+        matrix = axes @ np.diag([max(moments[0], moments[2] - middle), middle, moments[2]]) @ axes.T
+        for k, (i, j) in zip(("ixx", "ixy", "ixz", "iyy", "iyz", "izz"),
+                             ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+            inertia.set(k, repr(float(matrix[i, j])))
     extension = ET.SubElement(root, "mujoco")
-    ET.SubElement(extension, "compiler", discardvisual="true", fusestatic="false",
+    # Bodies on fixed joints fused into their parents, as jaxdyn's `merge_fixed` welds them.
+    ET.SubElement(extension, "compiler", discardvisual="true", fusestatic="true",
                   balanceinertia="false", inertiafromgeom="false")
     model = mujoco.MjModel.from_xml_string(ET.tostring(root, encoding="unicode"))
     model.opt.disableflags |= (mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
                                | mujoco.mjtDisableBit.mjDSBL_CONTACT)
-    return model
+    return model, balanced
 
 
 # -- measurements ------------------------------------------------------------------------------
@@ -341,14 +360,17 @@ def robots(names):
             pinocchio = pinocchio_per_call(theirs, states)
             print(f"  {label:36s} {fmt(vmapped)} per state (compile {compile_time:4.1f} s); "
                   f"Pinocchio {fmt(pinocchio)}; ratio {vmapped / pinocchio:5.2f}×", flush=True)
+            if label.startswith("forward dynamics, default"):
+                ours_fd = vmapped
         if mjx:
-            mj = robot_mjcf(path, floating)
+            mj, balanced = robot_mjcf(path, floating)
             m_mj = np.zeros((mj.nv, mj.nv))
             mj_data = mujoco.MjData(mj)
             mujoco.mj_forward(mj, mj_data)
             mujoco.mj_fullM(mj, mj_data, m_mj)
-            assert np.allclose(np.linalg.eigvalsh(m_mj), np.linalg.eigvalsh(m_pin),
-                               rtol=1e-8, atol=1e-10), name
+            eigenvalues, expected = np.linalg.eigvalsh(m_mj), np.linalg.eigvalsh(m_pin)
+            agreement = float(np.max(np.abs(eigenvalues - expected) / expected))
+            assert agreement <= (1e-2 if balanced else 1e-8), (name, agreement)
             # MuJoCo's coordinates differ in order and, for the base, in convention: its own
             # random states, of the same spread
             mj_q = np.tile(mj.qpos0, (BATCH, 1))
@@ -360,7 +382,9 @@ def robots(names):
             mjx_vmapped = interleaved({"MJX": (jax.jit(jax.vmap(fn, (None, 0, 0, None))),
                                                (t, mj_qs, us, None))}, number=3)["MJX"] / BATCH
             print(f"  {'MJX forward dynamics':36s} {fmt(mjx_vmapped)} per state (compile "
-                  f"{mjx_compile:4.1f} s)", flush=True)
+                  f"{mjx_compile:4.1f} s); ratio to jaxdyn's {mjx_vmapped / ours_fd:5.2f}×; "
+                  f"M's eigenvalues within {agreement:.0e}"
+                  + (" (inertias balanced by MuJoCo)" if balanced else ""), flush=True)
 
 
 def main():
