@@ -58,6 +58,15 @@ class AbstractDynamics(eqx.Module):
         inner = getattr(self, "dynamics", None)
         return isinstance(inner, AbstractDynamics) and inner.batch_in_chunks
 
+    @property
+    def mass_matrix_in_straight_line(self) -> bool:
+        """Whether `mass_matrix` tries straight-line scalar code (`jaxdyn._unroll`) before the
+        array program: true but for the composite-rigid-body algorithm on trees, whose array
+        program runs faster in a batch and compiles sooner. A system wrapping another follows
+        it."""
+        inner = getattr(self, "dynamics", None)
+        return not isinstance(inner, AbstractDynamics) or inner.mass_matrix_in_straight_line
+
     @abc.abstractmethod
     def coordinate_rates(
         self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
@@ -133,7 +142,8 @@ class AbstractDynamics(eqx.Module):
         """The mass matrix M of M u̇ = f (symmetric positive definite)."""
         check_static_indexing(self.user_functions, t, q, u, p)
         return unrolled(lambda *args: self.form_equations(*args)[0], t, q, u, p,
-                        chunked=self.batch_in_chunks)
+                        chunked=self.batch_in_chunks,
+                        max_elements=None if self.mass_matrix_in_straight_line else 0)
 
     @public_method("(),(n),(m)->()")
     def mass_matrix_condition(self, t, q, u, p=None):

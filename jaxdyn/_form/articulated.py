@@ -80,6 +80,13 @@ class ArticulatedBody(AbstractDynamics):
         batch of 1024, the Panda's forward dynamics 13.8 → 2.2 µs)."""
         return True
 
+    @property
+    def mass_matrix_in_straight_line(self) -> bool:
+        """False: the composite-rigid-body algorithm runs as an array program, in chunks under
+        `jax.vmap` (per state in a batch of 1024 against its straight-line code: the Panda
+        2.06 → 1.52 µs and 4.0 → 1.5 s to compile, the UR5 1.52 → 0.98 µs)."""
+        return False
+
     def __check_init__(self):
         if not isinstance(self.tree, RigidBodyTree):
             raise ValueError("The articulated-body algorithm needs a jaxdyn.RigidBodyTree, got "
