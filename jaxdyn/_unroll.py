@@ -145,14 +145,17 @@ def _symbols_like(x, tag):
 def unrolled(fn, *args, otherwise=None, max_elements: int | None = None,
              chunked: bool = False):
     """``fn(*args)`` evaluated as straight-line scalar code, or ``otherwise(*args)`` (by
-    default ``fn(*args)`` as written) when the program is too large; with `chunked`, that
-    array program runs in chunks of a few states under `jax.vmap` (`jaxdyn._chunking`).
+    default ``fn(*args)`` as written) when the program is too large, or at once with
+    `max_elements` 0; with `chunked`, that array program runs in chunks of a few states
+    under `jax.vmap` (`jaxdyn._chunking`).
 
     `args` are pytrees of arrays; the result has the structure of ``fn(*args)``.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
     limit = MAX_ELEMENTS if max_elements is None else max_elements
     try:
+        if limit <= 0:  # no attempt: not even the trace that would find it too large
+            raise _Fallback
         closed, out_struct = _traced(fn, leaves, treedef, limit)
         outs = evaluate(closed, leaves, limit)
     except _Fallback:
