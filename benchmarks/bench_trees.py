@@ -30,6 +30,7 @@ states; compile and run time of a 1 s `simulate` (Tsit5, rtol = atol = 1e-8) aga
 
 import importlib.metadata
 import os
+import statistics
 import sys
 import time
 import xml.etree.ElementTree as ET
@@ -58,6 +59,10 @@ BATCH = 1024
 # of longer chains runs for many minutes: beyond this N it is left out.
 MJX_CHAIN_MAX = 5
 LOOP = 2000
+# Each robot program is compiled this many times afresh and timed each time: the same program
+# compiled afresh runs, now and then, 2–3× slower than usual (benchmarks/README.md, "Robots");
+# the figure is the median over the compilations, the range beside it.
+COMPILES = 3
 TOL = 1e-8
 
 
@@ -354,12 +359,17 @@ def robots(names):
               "joints)", flush=True)
         for label, (ours, theirs) in algorithms.items():
             batched = jax.vmap(ours)
-            compile_time = compile_seconds(batched, qs, us, uds)
-            vmapped = interleaved({label: (jax.jit(batched), (qs, us, uds))},
-                                  number=3)[label] / BATCH
+            times = []
+            for _ in range(COMPILES):  # each time afresh (`compile_seconds` clears the caches)
+                compile_time = compile_seconds(batched, qs, us, uds)
+                times.append(interleaved({label: (jax.jit(batched), (qs, us, uds))},
+                                         number=3)[label] / BATCH)
+            vmapped = statistics.median(times)
             pinocchio = pinocchio_per_call(theirs, states)
-            print(f"  {label:36s} {fmt(vmapped)} per state (compile {compile_time:4.1f} s); "
-                  f"Pinocchio {fmt(pinocchio)}; ratio {vmapped / pinocchio:5.2f}×", flush=True)
+            spread = f" [{min(times) * 1e6:.2f}–{max(times) * 1e6:.2f}]" if COMPILES > 1 else ""
+            print(f"  {label:36s} {fmt(vmapped)} per state{spread} (compile "
+                  f"{compile_time:4.1f} s); Pinocchio {fmt(pinocchio)}; ratio "
+                  f"{vmapped / pinocchio:5.2f}×", flush=True)
             if label.startswith("forward dynamics, default"):
                 ours_fd = vmapped
         if mjx:
