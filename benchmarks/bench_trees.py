@@ -359,12 +359,12 @@ def robots(names):
               "joints)", flush=True)
         for label, (ours, theirs) in algorithms.items():
             batched = jax.vmap(ours)
-            times = []
+            times, compile_times = [], []
             for _ in range(COMPILES):  # each time afresh (`compile_seconds` clears the caches)
-                compile_time = compile_seconds(batched, qs, us, uds)
+                compile_times.append(compile_seconds(batched, qs, us, uds))
                 times.append(interleaved({label: (jax.jit(batched), (qs, us, uds))},
                                          number=3)[label] / BATCH)
-            vmapped = statistics.median(times)
+            vmapped, compile_time = statistics.median(times), statistics.median(compile_times)
             pinocchio = pinocchio_per_call(theirs, states)
             spread = f" [{min(times) * 1e6:.2f}–{max(times) * 1e6:.2f}]" if COMPILES > 1 else ""
             print(f"  {label:36s} {fmt(vmapped)} per state{spread} (compile "
