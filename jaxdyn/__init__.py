@@ -1,41 +1,7 @@
 """jaxdyn: differentiable analytical dynamics on JAX."""
 
 from importlib.metadata import PackageNotFoundError as _NotInstalled, version as _version
-import os as _os
-
-# Two of XLA's CPU code generators are turned off, each for programs that jaxdyn forms
-# (benchmarks/README.md, "XLA's CPU code generators"):
-# - the fusion emitters compile the straight-line scalar programs of small systems
-#   (`jaxdyn._unroll`) into code that runs 50–2500× slower than XLA's elemental emitters: a
-#   UR5 arm's forward dynamics costs 1 ms per state in a vmapped batch with them, 0.4 µs
-#   without;
-# - YNNPACK fusions take over the small batched products of 6 × 6 and 3 × 3 blocks in a
-#   tree's recursions and run them several times slower than XLA's own loops: a humanoid's
-#   forward dynamics (G1) costs 49 µs per state in a batch with them, 15 µs without.
-# The switches are read when JAX first starts its CPU backend, so they are set here, before
-# jaxdyn creates any array, unless the user chose values of their own.
-_XLA_SWITCHES = {"xla_cpu_use_fusion_emitters": "false",
-                 "xla_cpu_experimental_ynn_fusion_type": ""}
-_unset = [name for name in _XLA_SWITCHES if name not in _os.environ.get("XLA_FLAGS", "")]
-if _unset:
-    _os.environ["XLA_FLAGS"] = " ".join(
-        [_os.environ.get("XLA_FLAGS", "")] + [f"--{name}={_XLA_SWITCHES[name]}"
-                                              for name in _unset]).strip()
-    import jax._src.xla_bridge as _xla_bridge
-
-    if _xla_bridge.backends_are_initialized() and _xla_bridge.default_backend() == "cpu":
-        import warnings as _warnings
-
-        _warnings.warn(
-            "JAX started its backends before jaxdyn was imported, so jaxdyn could not turn "
-            "off XLA's CPU fusion emitters and YNNPACK fusions, which run the programs of "
-            "small systems and of robots' recursions several to thousands of times slower on "
-            "the CPU (a vmapped batch above all). Import jaxdyn before the first JAX "
-            "computation, or start Python with XLA_FLAGS=\"" + " ".join(
-                f"--{name}={value}" for name, value in _XLA_SWITCHES.items()) + "\".",
-            stacklevel=2)
-    del _xla_bridge
-del _os, _unset
+from . import _xla as _xla
 
 from . import rotations as rotations
 from ._system.base import AbstractMultibody as AbstractMultibody

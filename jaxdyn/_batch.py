@@ -14,7 +14,7 @@ import tqdm
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._compile import FUSION_EMITTERS, batch_emitters, filter_jit, gc_paused
+from ._compile import BATCHED_LOOPS, FUSION_EMITTERS, batch_emitters, filter_jit, gc_paused
 from ._dynamics import straight_line_size
 from ._errors import error_if, reports_state
 from ._form.controlled import with_inputs
@@ -300,8 +300,8 @@ def _sharded(setup, members, shared):
 
 
 # The chunks' solve, by XLA's compiler options (`batch_emitters`).
-_SOLVE_CHUNK = {None: filter_jit(_sharded),
-                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS)}
+_SOLVE_CHUNK = {None: filter_jit(_sharded, compiler_options=BATCHED_LOOPS),
+                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS | BATCHED_LOOPS)}
 
 
 def _emitters(dynamics, batched, shared, mesh, dtype):

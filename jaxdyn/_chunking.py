@@ -8,7 +8,9 @@ few states at a time the same kernels work in cache. So these programs define th
 batching rule (`jax.custom_batching.custom_vmap`): under `jax.vmap` they run as `jax.lax.map`
 over chunks of `CHUNK` states, each chunk vmapped. Measured on the Panda arm's forward
 dynamics, per state in a batch of 1024 (2-core CPU, float64): 13.8 µs vmapped, 2.2 µs in
-chunks of 8, 9.9 µs one state at a time (`benchmarks/README.md`). Equations formed as whole
+chunks of 8, 9.9 µs one state at a time as XLA's runtime runs a loop, 1.6 µs one state at a
+time with the loop compiled as one function (jaxdyn's default, `jaxdyn._xla`;
+`benchmarks/README.md`). Equations formed as whole
 matrices do not use it: LAPACK's batched factorisations prefer the whole batch. Derivatives
 pass through the rule (its JVP is the JVP of the chunked map), and nested `vmap`s batch the
 map.
@@ -22,9 +24,16 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-# States per chunk: 8–16 keep a robot's intermediate arrays in cache; 32 already falls off
-# (the UR5: 1.2 µs per state at 16, 6.1 µs at 32).
-CHUNK = 8
+from ._xla import SMALL_LOOPS_ONE_FUNCTION
+
+# States per chunk. Where XLA compiles small loops as one function (`jaxdyn._xla`), one: the
+# loop over states runs as compiled code, without the runtime's launch of every kernel per
+# iteration (per state in a batch of 1024, the G1 humanoid's mass matrix 7.8 µs in chunks of
+# 8, 5.8 one at a time; its forward dynamics 8.9 and 8.7; Talos's compiles in 4.7 s against
+# 5.8). Else 8: a chunk's kernels then carry the launches, and 8–16 states keep a robot's
+# arrays in cache (the UR5: 1.2 µs per state at 16, 6.1 µs at 32; the Panda one state at a
+# time 9.9 µs, in chunks of 8 2.2).
+CHUNK = 1 if SMALL_LOOPS_ONE_FUNCTION else 8
 
 
 def chunked_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -73,6 +73,11 @@ def filter_jit(fn, compiler_options=None):
 FUSION_EMITTERS_MAX = 800
 FUSION_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
 
+# A batch's solve keeps its loops as XLA's runtime runs them (`jaxdyn._xla`, small loops): the
+# runtime spreads the large kernels of a batch over the cores, where a loop compiled as one
+# function runs on one (256 double pendulums with T as 2-vectors: 98 ms against 192).
+BATCHED_LOOPS = {"xla_disable_hlo_passes": "small-while-loop-hoisting"}
+
 
 def batch_emitters(size, platform) -> dict | None:
     """XLA's compiler options for a vmapped solve on `platform` of equations of `size` scalar

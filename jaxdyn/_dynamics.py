@@ -67,6 +67,16 @@ class AbstractDynamics(eqx.Module):
         inner = getattr(self, "dynamics", None)
         return not isinstance(inner, AbstractDynamics) or inner.mass_matrix_in_straight_line
 
+    @property
+    def equations_in_straight_line(self) -> bool:
+        """Whether the equations of motion (`accelerations`, `simulate`) try straight-line
+        scalar code (`jaxdyn._unroll`) before the array program: true but where they cannot fit
+        its budget, so that the attempt, a whole trace of the equations, is not spent (trees of
+        more than `ArticulatedBody.STRAIGHT_LINE_SPEEDS` speeds). A system wrapping another
+        follows it."""
+        inner = getattr(self, "dynamics", None)
+        return not isinstance(inner, AbstractDynamics) or inner.equations_in_straight_line
+
     @abc.abstractmethod
     def coordinate_rates(
         self, t: RealScalarLike, q: Coordinates, u: Speeds, p: Params = None
@@ -234,7 +244,8 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
     return unrolled(functools.partial(_straight_line_equations, dynamics), t, q, u, p,
                     otherwise=functools.partial(_equations, dynamics, factorisation=None,
                                                 small=False),
-                    chunked=dynamics.batch_in_chunks)
+                    chunked=dynamics.batch_in_chunks,
+                    max_elements=None if dynamics.equations_in_straight_line else 0)
 
 
 def straight_line_size(dynamics, t, q, u, p) -> int | None:

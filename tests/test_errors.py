@@ -478,11 +478,13 @@ def PENDULUM_BY_SCIPY(ts):
 def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
     """`import jaxdyn` turns XLA's CPU fusion emitters off (on the straight-line programs of
     small systems they generate code up to thousands of times slower) and YNNPACK fusions (on
-    the small batched block products of a tree's recursions several times slower), keeps a
-    user's own choice of either, and warns, naming both switches, when JAX started before
-    jaxdyn was imported."""
+    the small batched block products of a tree's recursions several times slower), lets XLA
+    compile loops of up to a megabyte per iteration as one function, keeps a user's own
+    choice of any of them, and warns, naming the switches, when JAX started before jaxdyn was
+    imported."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    ours = "--xla_cpu_use_fusion_emitters=false --xla_cpu_experimental_ynn_fusion_type="
+    loops = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
+    ours = f"--xla_cpu_use_fusion_emitters=false --xla_cpu_experimental_ynn_fusion_type= {loops}"
     scripts = {
         "first": ("import os, jaxdyn, jax.numpy as jnp; jnp.ones(1); "
                   "print(os.environ['XLA_FLAGS'])", {}),
@@ -501,9 +503,9 @@ def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
     assert done["first"][0] == 0, done["first"][2]
     assert done["first"][1].strip() == ours
     assert done["chosen"][1].strip() == ("--xla_cpu_use_fusion_emitters=true "
-                                         "--xla_cpu_experimental_ynn_fusion_type=")
+                                         f"--xla_cpu_experimental_ynn_fusion_type= {loops}")
     assert done["both chosen"][1].strip() == ("--xla_cpu_experimental_ynn_fusion_type=dot "
-                                              "--xla_cpu_use_fusion_emitters=true")
+                                              f"--xla_cpu_use_fusion_emitters=true {loops}")
     assert done["late"][0] != 0
     assert f'XLA_FLAGS="{ours}"' in done["late"][2]
 

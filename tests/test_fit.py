@@ -348,9 +348,11 @@ def test_long_records_are_simulated_one_after_another(monkeypatch, oscillator_fi
     # Another observation function (the default's equal) makes a new program, traced with
     # the patched limit, rather than the fixture's compiled one.
     result = fit_oscillator(oscillator_experiment(), observe=lambda t, q, u, p: q)
+    # The two programs round differently (XLA compiles the loop over records as one function,
+    # the vmapped solves as kernels): equal to 1e-10, a hundredth of the fit's tolerance.
     for key in ("k", "c"):
         np.testing.assert_allclose(float(result.params[key]),
-                                   float(oscillator_fit.params[key]), rtol=1e-12)
+                                   float(oscillator_fit.params[key]), rtol=1e-10)
         np.testing.assert_allclose(float(result.standard_errors[key]),
                                    float(oscillator_fit.standard_errors[key]), rtol=1e-9)
 

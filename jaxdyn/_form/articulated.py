@@ -1,5 +1,7 @@
 """Featherstone's articulated-body algorithm: forward dynamics of a tree in O(N)."""
 
+from typing import ClassVar
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -76,9 +78,24 @@ class ArticulatedBody(AbstractDynamics):
 
     @property
     def batch_in_chunks(self) -> bool:
-        """True: under `jax.vmap` the recursions run in chunks of a few states (per state in a
-        batch of 1024, the Panda's forward dynamics 13.8 → 2.2 µs)."""
+        """True: under `jax.vmap` the recursions run in chunks of a few states, a state at a
+        time where XLA compiles the loop as one function (per state in a batch of 1024, the
+        Panda's forward dynamics 13.8 µs vmapped whole, 2.2 µs in chunks of 8, 1.6 µs a state
+        at a time)."""
         return True
+
+    #: The most speeds for which the articulated-body algorithm can fit the straight-line
+    #: budget (`jaxdyn._unroll.MAX_ELEMENTS`): a planar chain costs at least ~255 scalar
+    #: operations per link (16 links: 3850 of 4000), a 3-D arm more (the UR5's 6: 2711; the
+    #: Panda's 9 do not fit). Beyond it the attempt is not traced: ANYmal-C's forward dynamics
+    #: in a batch compiles in 4.1 s instead of 4.8.
+    STRAIGHT_LINE_SPEEDS: ClassVar[int] = 16
+
+    @property
+    def equations_in_straight_line(self) -> bool:
+        """Whether the equations try straight-line code first: for trees of at most
+        `STRAIGHT_LINE_SPEEDS` speeds."""
+        return self.tree.num_speeds <= self.STRAIGHT_LINE_SPEEDS
 
     @property
     def mass_matrix_in_straight_line(self) -> bool:

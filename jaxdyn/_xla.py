@@ -1,0 +1,63 @@
+"""The switches of XLA's CPU compiler that jaxdyn sets at import.
+
+Three, each for programs that jaxdyn forms (benchmarks/README.md, "XLA's CPU code generators"
+and "Loops as one function"):
+
+- the fusion emitters compile the straight-line scalar programs of small systems
+  (`jaxdyn._unroll`) into code that runs 50–2500× slower than XLA's elemental emitters: a UR5
+  arm's forward dynamics costs 1 ms per state in a vmapped batch with them, 0.4 µs without;
+- YNNPACK fusions take over the small batched products of 6 × 6 and 3 × 3 blocks in a tree's
+  recursions and run them several times slower than XLA's own loops: a humanoid's forward
+  dynamics (G1) costs 49 µs per state in a batch with them, 15 µs without;
+- small loops become one function. XLA's CPU runtime runs a loop as a sequence of kernels
+  per iteration, each launched by the runtime at a cost of tens of nanoseconds, and compiles a
+  loop into a single function only when one iteration of its body touches under a kilobyte.
+  A robot's recursions over its links are hundreds of small kernels per state, and a step of
+  a small system's integration tens: with the bound at `SMALL_LOOP_BYTES` such loops run as
+  one compiled function (per state in a batch of 1024, the G1 humanoid's forward dynamics
+  12.0 → 8.7 µs, its mass matrix 8.1 → 5.8; a double pendulum's `simulate` over 100 s
+  6.4 → 2.8 ms, a chain of 10 rods' 200 → 39 ms). A loop so compiled runs on one core, where
+  the runtime spreads the large kernels of a batch over the cores: `simulate_batch` compiles
+  its solves without it (`jaxdyn._compile.BATCHED_LOOPS`), and a `jax.vmap` of `simulate`
+  under your own `jax.jit` of 256 small systems runs 1.5× slower with it on two cores
+  (benchmarks/README.md, "Loops as one function").
+
+The switches are read when JAX first starts its CPU backend, so they are set here, before
+jaxdyn creates any array, unless the user chose values of their own.
+"""
+
+import os
+import warnings
+
+import jax._src.xla_bridge as xla_bridge
+
+
+# The bytes that one iteration of a loop's body may touch for XLA to compile the loop as one
+# function: one state of a humanoid's recursions (Talos, 45 bodies) or of a chain of 100 links
+# fits, a step of the vmapped solve of a thousand small systems does not.
+SMALL_LOOP_BYTES = 1_000_000
+
+SWITCHES = {"xla_cpu_use_fusion_emitters": "false",
+            "xla_cpu_experimental_ynn_fusion_type": "",
+            "xla_backend_extra_options":
+                f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"}
+
+_unset = [name for name in SWITCHES if name not in os.environ.get("XLA_FLAGS", "")]
+_started = xla_bridge.backends_are_initialized() and xla_bridge.default_backend() == "cpu"
+if _unset:
+    os.environ["XLA_FLAGS"] = " ".join(
+        [os.environ.get("XLA_FLAGS", "")] + [f"--{name}={SWITCHES[name]}"
+                                             for name in _unset]).strip()
+    if _started:
+        warnings.warn(
+            "JAX started its backends before jaxdyn was imported, so jaxdyn could not turn "
+            "off XLA's CPU fusion emitters and YNNPACK fusions, nor let XLA compile small "
+            "loops as one function, which run the programs of small systems and of robots' "
+            "recursions several to thousands of times slower on the CPU (a vmapped batch "
+            "above all). Import jaxdyn before the first JAX computation, or start Python with "
+            "XLA_FLAGS=\"" + " ".join(f"--{name}={value}" for name, value in SWITCHES.items())
+            + "\".", stacklevel=2)
+
+# Whether XLA compiles a loop of small iterations as one function in this process (jaxdyn's
+# switch, in effect): array programs then batch a state at a time (`jaxdyn._chunking`).
+SMALL_LOOPS_ONE_FUNCTION = "xla_backend_extra_options" in _unset and not _started
