@@ -201,6 +201,22 @@ def test_floating_base_against_pinocchio(hopper):
     _compare_with_pinocchio(hopper, ["base", "shank", "foot", "slider"])
 
 
+
+def test_a_points_jacobian_gives_its_velocity(hopper):
+    """J(q) u of a point off a link's origin, in world and local axes, equals that point's
+    velocity from the velocity recursion (`frame_velocity`, computed independently of the
+    Jacobian's columns), on the floating hopper at random states."""
+    tree, p = hopper.tree, hopper.p
+    _, (qs, us, _) = hopper.random_states(3, seed=5)
+    point = (0.02, -0.01, 0.05)
+    for q, u in zip(qs, us):
+        for frame in ("shank", "foot"):
+            for axes in ("world", "local"):
+                jacobian = jaxdyn.frame_jacobian(tree, frame, q, p, point=point, axes=axes)
+                velocity = jaxdyn.frame_velocity(tree, frame, q, u, p, point=point, axes=axes)
+                assert_close(np.asarray(jacobian) @ np.asarray(u), velocity, rtol=0,
+                             atol=1e-12 * (1 + np.max(np.abs(velocity))))
+
 @pytest.mark.slow
 def test_quadruped_against_pinocchio():
     _compare_with_pinocchio(Robot.load(robot_file("solo12.urdf"), floating=True),

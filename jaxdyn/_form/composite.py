@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._system import spatial
-from .._system.tree import RigidBodyTree
+from .._system.tree import RigidBodyTree, speed_subspaces
 from .newton_euler import inertia_at_origin, inertial_parameters
 
 
@@ -65,16 +65,6 @@ def _subtrees(tree: RigidBodyTree) -> np.ndarray:
     return membership
 
 
-def _speeds(tree: RigidBodyTree):
-    """For each speed, its link (m,) and its column of the joint's motion subspace (m, 6)."""
-    links, columns = [], []
-    for i, link in enumerate(tree.links):
-        subspace = np.asarray(link.joint.subspace(), dtype=float).reshape(6, -1)
-        links += [i] * subspace.shape[1]
-        columns += list(subspace.T)
-    return np.array(links, dtype=np.int32), np.array(columns).reshape(-1, 6)
-
-
 def composite_mass_matrix(tree: RigidBodyTree, t, q, p):
     """M (m, m) of a tree by the composite-rigid-body algorithm in world axes (module
     docstring): the same matrix as M_rs = Σ m v_r·v_s + ω_r·I ω_s of Kane's equations."""
@@ -89,7 +79,7 @@ def composite_mass_matrix(tree: RigidBodyTree, t, q, p):
     first_c = membership @ first_moment
     inertia_c = jnp.einsum("ik,kab->iab", membership, inertia)
 
-    link_of, subspace = _speeds(tree)
+    link_of, subspace = speed_subspaces(tree)
     turn, at = rotation[link_of], origin[link_of]
     omega = spatial.matvec(turn, jnp.asarray(subspace[:, :3], dtype))
     velocity = spatial.matvec(turn, jnp.asarray(subspace[:, 3:], dtype)) + spatial.cross(at,

@@ -24,7 +24,7 @@ import numpy as np
 
 from .._state import public_function
 from . import spatial
-from .tree import RigidBodyTree, checked_state as _checked
+from .tree import RigidBodyTree, checked_state as _checked, speed_subspaces
 
 _AXES = ("world", "local")
 
@@ -106,12 +106,26 @@ def frame_velocity(tree: RigidBodyTree, frame, q, u, p=None, *, point=None, axes
 @public_function(num_static=2)
 def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="world"):
     """J (6, m) with (ω, v) = J(q) u: rows ω then v, in world or local axes (module
-    docstring); the Jacobian of the velocity in the speeds (exact: it is linear in them)."""
+    docstring). Column k is speed k's motion subspace S (of its joint, on link i with pose
+    (R_i, r_i)) carried to the frame's point P: ω_k = R_i S_ω, v_k = R_i S_v + ω_k × (P − r_i);
+    zero for speeds that do not move the frame."""
     _check_axes(axes)
     q, _, _ = _checked(tree, q)
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
-    point, zero = _point(point, q.dtype), jnp.zeros(len(u_index), q.dtype)
-    columns = jax.jacfwd(lambda u: _velocity(chain, point, axes, q[q_index], u, p))(zero)
+    # Column by column, each speed's motion subspace s_k = (ω_k, v_k) of its link i turned
+    # into the world's axes and moved to the frame's point P (Featherstone's S carried by the
+    # link's pose): ω_k = R_i S_ω, v_k = R_i S_v + ω_k × (P − r_i). A direct formula, cheaper
+    # than differentiating the velocity recursion.
+    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), q[q_index], p)
+    link_of, subspace = speed_subspaces(chain)
+    subspace = jnp.asarray(subspace, q.dtype)
+    turn, at = rotations[link_of], origins[link_of]
+    where = origins[-1] + rotations[-1] @ _point(point, q.dtype)
+    omega = spatial.matvec(turn, subspace[:, :3])
+    velocity = spatial.matvec(turn, subspace[:, 3:]) + spatial.cross(omega, where[None] - at)
+    if axes == "local":
+        omega, velocity = omega @ rotations[-1], velocity @ rotations[-1]  # Rᵀ x, row-wise
+    columns = jnp.concatenate([omega, velocity], axis=1).T
     return jnp.zeros((6, tree.num_speeds), q.dtype).at[:, u_index].set(columns)
 
 

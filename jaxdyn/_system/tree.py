@@ -178,6 +178,18 @@ def _stacked(first, rest) -> Any:
     return tree_map(lambda x, y: jnp.concatenate([x.astype(y.dtype), y]), stacked, rest)
 
 
+
+def speed_subspaces(tree) -> tuple[np.ndarray, np.ndarray]:
+    """For each speed of `tree`, its link (m,) and its column of that link's joint motion
+    subspace (m, 6), rows (ω, v) in the link's axes (constant for every joint type here)."""
+    links, columns = [], []
+    for i, link in enumerate(tree.links):
+        subspace = np.asarray(link.joint.subspace(), dtype=float).reshape(6, -1)
+        links += [i] * subspace.shape[1]
+        columns += list(subspace.T)
+    return np.array(links, dtype=np.int32), np.array(columns).reshape(-1, 6)
+
+
 @overload
 def checked_state(tree, q, u: None = None, ud: None = None) -> tuple[jax.Array, None, None]: ...
 
