@@ -26,7 +26,7 @@ import numpy as np
 
 from .._state import public_function
 from .._system import spatial
-from .._system.tree import RigidBodyTree, checked_state as _checked
+from .._system.tree import RigidBodyTree, checked_state as _checked, speed_subspaces
 
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
 UPPER = (np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2]))  # π[4:] within I_O
@@ -164,12 +164,23 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
     body_regressors = jax.vmap(jax.jacfwd(link_force))(
         jnp.zeros((n, 10), q.dtype), omega, velocity, alpha, accel)
 
-    def link_velocities(u):
-        _, _, omega, velocity = bodies.link_states(t, q, u, p)
-        return jnp.concatenate([omega, velocity], axis=-1)
-
-    jacobians = jax.jacfwd(link_velocities)(u)  # J_j (n, 6, m): linear in u, exact
-    regressor = jnp.einsum("jkm,jkc->mjc", jacobians, body_regressors)
+    # J_j's columns for the speeds that move link j (those of its ancestors and its own; the
+    # others are zero), each speed's motion subspace S of its link i carried to link j's
+    # origin and axes: ω = R_jᵀ R_i S_ω, v = R_jᵀ (R_i S_v + R_i S_ω × (r_j − r_i)).
+    speeds, moving, position = _speeds_moving(bodies)
+    link_of, subspace = speed_subspaces(bodies)
+    rotation, origin = bodies.link_poses(t, q, p)
+    subspace = jnp.asarray(subspace[speeds], q.dtype)  # (n, K, 6)
+    turn, at = rotation[link_of[speeds]], origin[link_of[speeds]]
+    omega = spatial.matvec(turn, subspace[..., :3])
+    velocity = spatial.matvec(turn, subspace[..., 3:]) + spatial.cross(omega,
+                                                                       origin[:, None] - at)
+    columns = jnp.concatenate([jnp.einsum("jab,jka->jkb", rotation, omega),
+                               jnp.einsum("jab,jka->jkb", rotation, velocity)], axis=-1)
+    blocks = jnp.einsum("jkc,jce->jke", columns * jnp.asarray(moving, q.dtype)[..., None],
+                        body_regressors)  # (n, K, 10): J_jᵀ A_j on link j's moving speeds
+    blocks = jnp.concatenate([blocks, jnp.zeros((n, 1, 10), q.dtype)], axis=1)
+    regressor = blocks[np.arange(n)[None, :], position]  # (m, n, 10)
     if bodies is tree:
         return regressor.reshape(-1, 10 * n)
     # A welded link's π enters its body's π linearly (`_transport`): Y_k = Y_body(k) T_k.
@@ -177,6 +188,29 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
     columns = jnp.einsum("mkj,kje->mke", regressor[:, body_index],
                          jnp.asarray(transport, q.dtype))
     return columns.reshape(-1, 10 * len(tree.links))
+
+
+def _speeds_moving(tree: RigidBodyTree):
+    """For each link j, the speeds that move it (its ancestors' and its own), padded to the
+    longest such list: their indices (N, K), whether each slot is one (N, K), and for each
+    speed and link the slot that holds it, K where the speed does not move the link (m, N)."""
+    slices = tree.speed_slices()
+    lists = []
+    for j in range(len(tree.links)):
+        chain, k = [], j
+        while k >= 0:
+            chain.append(k)
+            k = tree.parents[k]
+        link_slices = [slices[tree.links[k].name] for k in reversed(chain)]
+        lists.append([s for piece in link_slices for s in range(piece.start, piece.stop)])
+    width = max(1, max(len(speeds) for speeds in lists))
+    speeds = np.zeros((len(lists), width), dtype=int)
+    moving = np.zeros((len(lists), width), dtype=bool)
+    position = np.full((tree.num_speeds, len(lists)), width, dtype=int)
+    for j, listed in enumerate(lists):
+        speeds[j, :len(listed)], moving[j, :len(listed)] = listed, True
+        position[listed, j] = np.arange(len(listed))
+    return speeds, moving, position
 
 
 def _transport(parameters, rotation, translation):
