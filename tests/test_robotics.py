@@ -201,7 +201,6 @@ def test_floating_base_against_pinocchio(hopper):
     _compare_with_pinocchio(hopper, ["base", "shank", "foot", "slider"])
 
 
-
 def test_a_points_jacobian_gives_its_velocity(hopper):
     """J(q) u of a point off a link's origin, in world and local axes, equals that point's
     velocity from the velocity recursion (`frame_velocity`, computed independently of the
@@ -216,6 +215,7 @@ def test_a_points_jacobian_gives_its_velocity(hopper):
                 velocity = jaxdyn.frame_velocity(tree, frame, q, u, p, point=point, axes=axes)
                 assert_close(np.asarray(jacobian) @ np.asarray(u), velocity, rtol=0,
                              atol=1e-12 * (1 + np.max(np.abs(velocity))))
+
 
 @pytest.mark.slow
 def test_quadruped_against_pinocchio():

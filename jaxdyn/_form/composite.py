@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._system import spatial
-from .._system.tree import RigidBodyTree, speed_subspaces
+from .._system.tree import RigidBodyTree, ancestry, speed_subspaces
 from .newton_euler import inertia_at_origin, inertial_parameters
 
 
@@ -58,10 +58,7 @@ def _subtrees(tree: RigidBodyTree) -> np.ndarray:
     n = len(tree.links)
     membership = np.zeros((n, n), dtype=bool)
     for k in range(n):
-        i = k
-        while i >= 0:
-            membership[i, k] = True
-            i = tree.parents[i]
+        membership[ancestry(tree, k)[0], k] = True
     return membership
 
 

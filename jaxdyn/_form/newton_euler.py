@@ -26,7 +26,8 @@ import numpy as np
 
 from .._state import public_function
 from .._system import spatial
-from .._system.tree import RigidBodyTree, checked_state as _checked, speed_subspaces
+from .._system.tree import (RigidBodyTree, ancestry, checked_state as _checked,
+                            speed_subspaces)
 
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
 UPPER = (np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2]))  # π[4:] within I_O
@@ -194,15 +195,7 @@ def _speeds_moving(tree: RigidBodyTree):
     """For each link j, the speeds that move it (its ancestors' and its own), padded to the
     longest such list: their indices (N, K), whether each slot is one (N, K), and for each
     speed and link the slot that holds it, K where the speed does not move the link (m, N)."""
-    slices = tree.speed_slices()
-    lists = []
-    for j in range(len(tree.links)):
-        chain, k = [], j
-        while k >= 0:
-            chain.append(k)
-            k = tree.parents[k]
-        link_slices = [slices[tree.links[k].name] for k in reversed(chain)]
-        lists.append([s for piece in link_slices for s in range(piece.start, piece.stop)])
+    lists = [ancestry(tree, j)[2] for j in range(len(tree.links))]
     width = max(1, max(len(speeds) for speeds in lists))
     speeds = np.zeros((len(lists), width), dtype=int)
     moving = np.zeros((len(lists), width), dtype=bool)

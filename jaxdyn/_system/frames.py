@@ -24,7 +24,7 @@ import numpy as np
 
 from .._state import public_function
 from . import spatial
-from .tree import RigidBodyTree, checked_state as _checked, speed_subspaces
+from .tree import RigidBodyTree, ancestry, checked_state as _checked, speed_subspaces
 
 _AXES = ("world", "local")
 
@@ -46,16 +46,8 @@ def _ancestors(tree, i):
     """The links from the root to link i, as a tree of its own (a chain), and the indices of
     its coordinates and speeds in the whole tree's q and u: a frame's pose and motion depend on
     nothing else, so a foot of a 78-link quadruped costs a chain of eight links."""
-    chain = [i]
-    while tree.parents[chain[-1]] >= 0:
-        chain.append(tree.parents[chain[-1]])
-    links = [tree.links[k] for k in reversed(chain)]
-    q_slices, u_slices = tree.coordinate_slices(), tree.speed_slices()
-    q_index, u_index = (np.concatenate([np.arange(slices[link.name].start,
-                                                  slices[link.name].stop, dtype=int)
-                                        for link in links])
-                        for slices in (q_slices, u_slices))
-    return RigidBodyTree(links, gravity=tree.gravity), q_index, u_index
+    chain, q_index, u_index = ancestry(tree, i)
+    return RigidBodyTree([tree.links[k] for k in chain], gravity=tree.gravity), q_index, u_index
 
 
 def _point(point, dtype):

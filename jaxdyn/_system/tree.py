@@ -178,6 +178,19 @@ def _stacked(first, rest) -> Any:
     return tree_map(lambda x, y: jnp.concatenate([x.astype(y.dtype), y]), stacked, rest)
 
 
+def ancestry(tree, i) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """The links from the root to link i (root first, i last), and the indices of their
+    coordinates and speeds in the whole tree's q and u: what moves link i."""
+    chain = [i]
+    while tree.parents[chain[-1]] >= 0:
+        chain.append(tree.parents[chain[-1]])
+    chain.reverse()
+    q_index, u_index = (np.concatenate([np.arange(slices[tree.links[k].name].start,
+                                                  slices[tree.links[k].name].stop, dtype=int)
+                                        for k in chain])
+                        for slices in (tree.coordinate_slices(), tree.speed_slices()))
+    return chain, q_index, u_index
+
 
 def speed_subspaces(tree) -> tuple[np.ndarray, np.ndarray]:
     """For each speed of `tree`, its link (m,) and its column of that link's joint motion
