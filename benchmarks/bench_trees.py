@@ -372,6 +372,22 @@ def robots(names):
                   f"{vmapped / pinocchio:5.2f}×", flush=True)
             if label.startswith("forward dynamics, default"):
                 ours_fd = vmapped
+            if label.startswith("torque regressor, welded"):
+                regressor_pinocchio = pinocchio
+        # The regressor's output is m × 10 N numbers a state (Talos's 180 kB): a batch of 1024
+        # writes a fresh buffer of that size, and its first touch of every page (a page
+        # fault each 4 kB) sets a floor. Beside it, zeros of that shape written alone, and the
+        # same regressor over 128 states, whose output malloc reuses from call to call.
+        shape = (tree.num_speeds, 10 * len(bodies.links))
+        write = jax.jit(jax.vmap(lambda q: jnp.zeros(shape, q.dtype) + q[0]))
+        welded = jax.jit(jax.vmap(lambda q, u, ud: jaxdyn.inverse_dynamics_regressor(
+            bodies, q, u, ud)))
+        small = (qs[:128], us[:128], uds[:128])
+        floor = interleaved({"zeros": (write, (qs,))}, number=3)["zeros"] / BATCH
+        small_batch = interleaved({"128": (welded, small)}, number=3)["128"] / 128
+        print(f"  {'   the output alone, zeros written':36s} {fmt(floor)} per state; the "
+              f"welded regressor over 128 states {fmt(small_batch)} per state, ratio "
+              f"{small_batch / regressor_pinocchio:5.2f}×", flush=True)
         if mjx:
             mj, balanced = robot_mjcf(path, floating)
             m_mj = np.zeros((mj.nv, mj.nv))

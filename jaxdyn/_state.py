@@ -216,19 +216,20 @@ def public_method(signature: str):
     return decorator
 
 
-def public_function(num_static: int = 1):
+def public_function(num_static: int = 1, chunked: bool = True):
     """A public function ``fn(system, *args, **options)`` of a system and states, compiled once
     per system, argument shapes and options (keyword options and the first `num_static`
     positional arguments — the system, a frame's name — are static; Python floats among the
     rest are traced, so that a new value reuses the program). Inside a caller's `jax.jit`,
     `vmap` or `grad` it is traced once and inlined; under `vmap` it runs in chunks of a few
-    states (`jaxdyn._chunking`)."""
+    states (`jaxdyn._chunking`) where `chunked`, else batched whole."""
     def decorator(fn):
         @filter_jit
         def compiled(static, args, options):
             # Under `jax.vmap` in chunks of a few states (`jaxdyn._chunking`): a tree's
             # recursions are array programs of many small kernels.
-            return chunked_vmap(functools.partial(fn, **dict(options)))(*static, *args)
+            partial = functools.partial(fn, **dict(options))
+            return (chunked_vmap(partial) if chunked else partial)(*static, *args)
 
         @functools.wraps(fn)
         def wrapper(*args, **options):

@@ -430,8 +430,9 @@ def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
     one depth together) and the articulated-body algorithm in ground axes: a floating base
     taken before the scan, two branches of different depths, a ball joint widening the
     scanned links to three columns (revolute links padded), and a force on a link. Forward
-    dynamics against Kane's equations of the same tree (`LOOP_MAX` lowered so that the tree
-    is scanned), and the derivatives in q, u against central differences."""
+    dynamics and the mass matrix against Kane's equations of the same tree (`LOOP_MAX`
+    lowered so that the tree is scanned), and the derivatives in q, u against central
+    differences."""
     monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
     inertia = jnp.asarray(INERTIA)
     arm = _floating_arm()
@@ -457,9 +458,14 @@ def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
     q[:3] += [3.0, -2.0, 1.0]  # away from the world's origin
     u = rng.uniform(-1, 1, tree.num_speeds)
     aba = jaxdyn.ArticulatedBody(tree)
-    expected = jaxdyn.Kane.from_system(tree).accelerations(0.0, q, u, None)
+    kane = jaxdyn.Kane.from_system(tree)
+    expected = kane.accelerations(0.0, q, u, None)
     assert_close(aba.accelerations(0.0, q, u, None), expected, rtol=0,
                  atol=1e-10 * np.max(np.abs(expected)))
+    # The links are not in depth-first order (leg and finger come after the hand), so the
+    # composite-rigid-body mass matrix reorders its speeds and back.
+    assert_close(aba.mass_matrix(0.0, q, u, None), kane.mass_matrix(0.0, q, u, None),
+                 rtol=1e-12, atol=1e-14)
 
     def accelerations(q, u):
         return aba.accelerations(0.0, q, u, None, throw=False)

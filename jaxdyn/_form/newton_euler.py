@@ -27,7 +27,7 @@ import numpy as np
 from .._state import public_function
 from .._system import spatial
 from .._system.tree import (RigidBodyTree, ancestry, checked_state as _checked,
-                            speed_subspaces)
+                            world_subspaces)
 
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
 UPPER = (np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2]))  # π[4:] within I_O
@@ -130,7 +130,7 @@ def joint_forces(tree: RigidBodyTree, t, q, u, p):
     return tree.joint_forces(t, q, u, p) + transpose(elastic)[0]
 
 
-@public_function()
+@public_function(chunked=False)
 def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Array:
     r"""The joint-force regressor Y (m, 10 N) of a tree: inverse dynamics is linear in the
     links' inertial parameters,
@@ -145,96 +145,69 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
 
     **Arguments:** the tree, coordinates q (n,), speeds u (m,), accelerations u̇ (m,), and p
     (only gravity may depend on it). Formed link by link: the joint forces are the links'
-    forces mapped back through their Jacobians, τ = Σ_j J_jᵀ f_j, and each link's force
-    f_j = I_j a_j + v_j ×* I_j v_j (its spatial acceleration a_j measured from the world's
-    (0, −g)) is linear in its own π_j, f_j = A_j π_j, so the columns of link j are J_jᵀ A_j,
-    with J_j (6, m) the Jacobian of the link's velocity in its own axes. `jax.vmap` it over
-    states.
+    forces mapped back through their Jacobians, τ_i = Σ_j s_i · f_j over the links j that
+    speed i moves, with s_i the speed's motion subspace in the world's axes at its origin
+    and f_j = (n_O, f) the force link j needs, I_j a_j + v_j ×* I_j v_j (its spatial
+    acceleration a_j measured from the world's (0, −g)), carried to the world's origin. That
+    force is linear in the link's own π_j, f_j = X_j^* A_j π_j, so link j's columns are
+    Y_ij = s_i · X_j^* A_j. `jax.vmap` it over states.
     """
     q, u, ud = _checked(tree, q, u, ud)
     bodies = tree.merge_fixed()  # the links welded by fixed joints: one body each
-    n = len(bodies.links)
     t = jnp.zeros((), q.dtype)
-    (omega, velocity, alpha, accel), _ = link_motion(bodies, q, u, ud,
-                                                     bodies.gravity_vector(p, q.dtype))
+    motion, _ = link_motion(bodies, q, u, ud, bodies.gravity_vector(p, q.dtype))
+    rotation, origin = bodies.link_poses(t, q, p)
+    s_omega, s_velocity = world_subspaces(bodies, rotation, origin)
+    moves = _moves(bodies)  # (m, bodies): speed i moves body j
+    if bodies is not tree:
+        # Every link of the tree on its body, placed at (R, r) in the body's axes: its pose
+        # and its motion in its own axes follow by the rigid offset.
+        body_index, placement_r, placement_t, attached = _welding(tree, bodies)
+        turn, at = jnp.asarray(placement_r, q.dtype), jnp.asarray(placement_t, q.dtype)
+        motion = [spatial.motion_to_child(turn, at, *(x[body_index] for x in pair))
+                  for pair in (motion[:2], motion[2:])]
+        motion = (*motion[0], *motion[1])
+        rotation, origin = (spatial.matmul(rotation[body_index], turn),
+                            origin[body_index] + spatial.matvec(rotation[body_index], at))
+        moves = moves[:, body_index] & attached[None]
 
     def link_force(parameters, omega, velocity, alpha, accel):  # f_j (6,) of one link's π_j
         return jnp.concatenate(_link_forces(parameters, omega, velocity, alpha, accel))
 
-    # A_j = ∂f_j/∂π_j (exact at π = 0: f_j is linear in π_j), (n, 6, 10)
+    # A_j = ∂f_j/∂π_j (exact at π = 0: f_j is linear in π_j), (N, 6, 10), its ten columns
+    # carried to the world's origin and axes (N, 10, 3) each
     body_regressors = jax.vmap(jax.jacfwd(link_force))(
-        jnp.zeros((n, 10), q.dtype), omega, velocity, alpha, accel)
-
-    # J_j's columns for the speeds that move link j (those of its ancestors and its own; the
-    # others are zero), each speed's motion subspace S of its link i carried to link j's
-    # origin and axes: ω = R_jᵀ R_i S_ω, v = R_jᵀ (R_i S_v + R_i S_ω × (r_j − r_i)).
-    speeds, moving, position = _speeds_moving(bodies)
-    link_of, subspace = speed_subspaces(bodies)
-    rotation, origin = bodies.link_poses(t, q, p)
-    subspace = jnp.asarray(subspace[speeds], q.dtype)  # (n, K, 6)
-    turn, at = rotation[link_of[speeds]], origin[link_of[speeds]]
-    omega = spatial.matvec(turn, subspace[..., :3])
-    velocity = spatial.matvec(turn, subspace[..., 3:]) + spatial.cross(omega,
-                                                                       origin[:, None] - at)
-    columns = jnp.concatenate([jnp.einsum("jab,jka->jkb", rotation, omega),
-                               jnp.einsum("jab,jka->jkb", rotation, velocity)], axis=-1)
-    blocks = jnp.einsum("jkc,jce->jke", columns * jnp.asarray(moving, q.dtype)[..., None],
-                        body_regressors)  # (n, K, 10): J_jᵀ A_j on link j's moving speeds
-    blocks = jnp.concatenate([blocks, jnp.zeros((n, 1, 10), q.dtype)], axis=1)
-    regressor = blocks[np.arange(n)[None, :], position]  # (m, n, 10)
-    if bodies is tree:
-        return regressor.reshape(-1, 10 * n)
-    # A welded link's π enters its body's π linearly (`_transport`): Y_k = Y_body(k) T_k.
-    body_index, transport = _welding(tree, bodies)
-    columns = jnp.einsum("mkj,kje->mke", regressor[:, body_index],
-                         jnp.asarray(transport, q.dtype))
-    return columns.reshape(-1, 10 * len(tree.links))
+        jnp.zeros((moves.shape[1], 10), q.dtype), *motion)
+    moment, force = spatial.force_to_parent(
+        rotation[:, None], origin[:, None], jnp.swapaxes(body_regressors[:, :3], 1, 2),
+        jnp.swapaxes(body_regressors[:, 3:], 1, 2))
+    # s_i · X_j^* A_j as six broadcast products (m, N, 10): a matrix product with an inner
+    # dimension of six runs slower.
+    columns = sum(subspace[:, k, None, None] * world[None, :, :, k]
+                  for subspace, world in ((s_omega, moment), (s_velocity, force))
+                  for k in range(3))
+    return jnp.where(moves[:, :, None], columns, 0.0).reshape(len(moves), -1)
 
 
-def _speeds_moving(tree: RigidBodyTree):
-    """For each link j, the speeds that move it (its ancestors' and its own), padded to the
-    longest such list: their indices (N, K), whether each slot is one (N, K), and for each
-    speed and link the slot that holds it, K where the speed does not move the link (m, N)."""
-    lists = [ancestry(tree, j)[2] for j in range(len(tree.links))]
-    width = max(1, max(len(speeds) for speeds in lists))
-    speeds = np.zeros((len(lists), width), dtype=int)
-    moving = np.zeros((len(lists), width), dtype=bool)
-    position = np.full((tree.num_speeds, len(lists)), width, dtype=int)
-    for j, listed in enumerate(lists):
-        speeds[j, :len(listed)], moving[j, :len(listed)] = listed, True
-        position[listed, j] = np.arange(len(listed))
-    return speeds, moving, position
-
-
-def _transport(parameters, rotation, translation):
-    """π of a link seen from a body it is welded to, placed at (R, r) in the body's axes:
-    m, R h + m r, and about the body's origin I = R I_O Rᵀ + m (|r|² 1 − r rᵀ) + 2 (r·R h) 1
-    − r (R h)ᵀ − (R h) rᵀ (the parallel-axis theorem with the first moment). Linear in π."""
-    mass, first_moment = parameters[0], rotation @ parameters[1:4]
-    inertia = (rotation @ inertia_at_origin(parameters) @ rotation.T
-               + mass * (translation @ translation * np.eye(3) - np.outer(translation,
-                                                                          translation))
-               + 2 * (translation @ first_moment) * np.eye(3)
-               - np.outer(translation, first_moment) - np.outer(first_moment, translation))
-    return np.concatenate([[mass], first_moment + mass * translation,
-                           inertia[UPPER]])
+def _moves(tree: RigidBodyTree) -> np.ndarray:
+    """(m, N): whether speed i moves link j (its link is j or one of j's ancestors)."""
+    moves = np.zeros((tree.num_speeds, len(tree.links)), dtype=bool)
+    for j in range(len(tree.links)):
+        moves[ancestry(tree, j)[2], j] = True
+    return moves
 
 
 def _welding(tree, bodies):
-    """For each link of `tree`, the index of its body in `bodies` (`merge_fixed`) and the
-    10 × 10 matrix T_k with π_body = Σ_k T_k π_k (zero for links fixed to the world)."""
+    """For each link of `tree`: the index of its body in `bodies` (`merge_fixed`), its
+    placement (R, r) in the body's axes, and whether it is on a body at all (links fixed to
+    the world are not)."""
     names = [link.name for link in bodies.links]
-    placements = tree.welded_bodies()
-    body_index = np.zeros(len(tree.links), dtype=int)
-    transport = np.zeros((len(tree.links), 10, 10))
-    for k, link in enumerate(tree.links):
-        body, rotation, translation = placements[link.name]
-        if body is None:
-            continue
-        body_index[k] = names.index(body)
-        transport[k] = np.stack([_transport(unit, rotation, translation)
-                                 for unit in np.eye(10)], axis=1)
-    return body_index, transport
+    welded = tree.welded_bodies()
+    placements = [welded[link.name] for link in tree.links]
+    return (np.array([0 if body is None else names.index(body) for body, _, _ in placements]),
+            np.array([rotation for _, rotation, _ in placements]),
+            np.array([translation for _, _, translation in placements]),
+            np.array([body is not None for body, _, _ in placements]))
 
 
 @public_function()

@@ -24,7 +24,7 @@ import numpy as np
 
 from .._state import public_function
 from . import spatial
-from .tree import RigidBodyTree, ancestry, checked_state as _checked, speed_subspaces
+from .tree import RigidBodyTree, ancestry, checked_state as _checked, world_subspaces
 
 _AXES = ("world", "local")
 
@@ -104,17 +104,11 @@ def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="w
     _check_axes(axes)
     q, _, _ = _checked(tree, q)
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
-    # Column by column, each speed's motion subspace s_k = (ω_k, v_k) of its link i turned
-    # into the world's axes and moved to the frame's point P (Featherstone's S carried by the
-    # link's pose): ω_k = R_i S_ω, v_k = R_i S_v + ω_k × (P − r_i). A direct formula, cheaper
-    # than differentiating the velocity recursion.
+    # Column by column (`world_subspaces`): a direct formula, cheaper than differentiating
+    # the velocity recursion.
     rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), q[q_index], p)
-    link_of, subspace = speed_subspaces(chain)
-    subspace = jnp.asarray(subspace, q.dtype)
-    turn, at = rotations[link_of], origins[link_of]
     where = origins[-1] + rotations[-1] @ _point(point, q.dtype)
-    omega = spatial.matvec(turn, subspace[:, :3])
-    velocity = spatial.matvec(turn, subspace[:, 3:]) + spatial.cross(omega, where[None] - at)
+    omega, velocity = world_subspaces(chain, rotations, origins, where)
     if axes == "local":
         omega, velocity = omega @ rotations[-1], velocity @ rotations[-1]  # Rᵀ x, row-wise
     columns = jnp.concatenate([omega, velocity], axis=1).T

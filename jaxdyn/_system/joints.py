@@ -40,6 +40,14 @@ class AbstractJoint(eqx.Module):
     def transform(self, q) -> tuple[jax.Array, jax.Array]:
         """(R_J, r_J): the pose of the link frame in the joint frame, for coordinates q."""
 
+    def placed_transform(self, rotation, translation, q) -> tuple[jax.Array, jax.Array]:
+        """(R_PC, r_PC) = (R_F R_J, r_F + R_F r_J): the link frame's pose in its parent, the
+        joint frame F sitting at (R_F, r_F) (constant, NumPy, stacked like q's leading axes)."""
+        rotation_j, translation_j = self.transform(q)
+        rotation = jnp.asarray(rotation, q.dtype)
+        return (spatial.matmul(rotation, rotation_j),
+                jnp.asarray(translation, q.dtype) + spatial.matvec(rotation, translation_j))
+
     @abc.abstractmethod
     def twist(self, u) -> tuple[jax.Array, jax.Array]:
         """(ω, v) = S u: the link's velocity relative to the joint frame, in its own axes."""
@@ -106,6 +114,18 @@ class Revolute(_AlongAxis):
         axis = jnp.asarray(self.axis, q.dtype)
         return spatial.axis_rotation(axis, q[..., 0]), jnp.zeros(q.shape[:-1] + (3,), q.dtype)
 
+    def placed_transform(self, rotation, translation, q):
+        # R_F exp(θ [a]×) = R_F a aᵀ + cos θ R_F (1 − a aᵀ) + sin θ R_F [a]×: three constant
+        # matrices, so that no 3 × 3 product is left to run time.
+        a = np.asarray(self.axis)
+        along = rotation @ np.outer(a, a)
+        skew = np.cross(a, -np.eye(3))  # [a]×: row i is e_i × a, so that [a]× v = a × v
+        c, s = jnp.cos(q[..., 0])[..., None, None], jnp.sin(q[..., 0])[..., None, None]
+        rotation_pc = (jnp.asarray(along, q.dtype) + c * jnp.asarray(rotation - along, q.dtype)
+                       + s * jnp.asarray(rotation @ skew, q.dtype))
+        return rotation_pc, jnp.broadcast_to(jnp.asarray(translation, q.dtype),
+                                             q.shape[:-1] + (3,))
+
     def twist(self, u):
         return _along(self.axis, u), jnp.zeros(u.shape[:-1] + (3,), u.dtype)
 
@@ -119,6 +139,12 @@ class Prismatic(_AlongAxis):
     def transform(self, q):
         rotation = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape[:-1] + (3, 3))
         return rotation, _along(self.axis, q)
+
+    def placed_transform(self, rotation, translation, q):
+        # (R_F, r_F + (R_F a) s): the rotation is constant, the translation one product.
+        turned = rotation @ np.asarray(self.axis)
+        return (jnp.broadcast_to(jnp.asarray(rotation, q.dtype), q.shape[:-1] + (3, 3)),
+                jnp.asarray(translation, q.dtype) + jnp.asarray(turned, q.dtype) * q)
 
     def twist(self, u):
         return jnp.zeros(u.shape[:-1] + (3,), u.dtype), _along(self.axis, u)

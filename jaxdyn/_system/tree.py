@@ -203,6 +203,20 @@ def speed_subspaces(tree) -> tuple[np.ndarray, np.ndarray]:
     return np.array(links, dtype=np.int32), np.array(columns).reshape(-1, 6)
 
 
+def world_subspaces(tree, rotation, origin, point=None) -> tuple[jax.Array, jax.Array]:
+    """Every speed's motion subspace s_k = (ω_k, v_k) (m, 3) each, in the world's axes at a
+    point P of the world (default its origin): the speed's joint S on link i, with the link
+    at (R_i, r_i), turned and moved, ω_k = R_i S_ω, v_k = R_i S_v + ω_k × (P − r_i). It is
+    the column of speed k in the Jacobian of any point moved by it (Featherstone, 2008, §4.6),
+    from the links' world poses `rotation` (N, 3, 3) and `origin` (N, 3)."""
+    link_of, subspace = speed_subspaces(tree)
+    subspace = jnp.asarray(subspace, rotation.dtype)
+    turn, at = rotation[link_of], origin[link_of]
+    omega = spatial.matvec(turn, subspace[:, :3])
+    offset = -at if point is None else point[None] - at
+    return omega, spatial.matvec(turn, subspace[:, 3:]) + spatial.cross(omega, offset)
+
+
 @overload
 def checked_state(tree, q, u: None = None, ud: None = None) -> tuple[jax.Array, None, None]: ...
 
@@ -525,12 +539,10 @@ class RigidBodyTree(AbstractMultibody):
         """For every link (in order): its pose in its parent (R_PC (N, 3, 3), r_PC (N, 3)), and
         with `u` its joint velocity (ω_J, v_J) (N, 3) each, in its own axes."""
         rotations_t, translations_t = self._placements()
-        poses = [joint.transform(q[q_index]) for joint, _, q_index, _ in self._groups()]
-        rotation_j, translation_j = self._by_link(poses, q.dtype)
-        rotations_t = jnp.asarray(rotations_t, dtype=q.dtype)
-        rotation = spatial.matmul(rotations_t, rotation_j)
-        translation = jnp.asarray(translations_t, dtype=q.dtype) + spatial.matvec(
-            rotations_t, translation_j)
+        poses = [joint.placed_transform(rotations_t[members], translations_t[members],
+                                        q[q_index])
+                 for joint, members, q_index, _ in self._groups()]
+        rotation, translation = self._by_link(poses, q.dtype)
         if u is None:
             return rotation, translation
         return rotation, translation, *self.joint_twists(u)
