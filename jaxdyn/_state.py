@@ -6,7 +6,7 @@ import math
 import os
 import sys
 import warnings
-from typing import Any
+from typing import Any, Callable, Concatenate, Generic, ParamSpec, TypeVar, overload
 
 import equinox as eqx
 import jax
@@ -211,9 +211,57 @@ def public_method(signature: str):
             args = _positional(method.__name__, names, args, kwargs)
             return compiled(self, numbers_as_arrays(args, state_dtype(*args[1:])), options)
 
-        return reports_state(wrapper, block=False)  # `compiled` returns ready results
+        return BoundOnce(reports_state(wrapper, block=False))  # `compiled`: ready results
 
     return decorator
+
+
+_Self = TypeVar("_Self")
+_Params = ParamSpec("_Params")
+_Return = TypeVar("_Return")
+
+
+class _Bound(eqx.Module):
+    """`instance.method`, a pytree of the instance (what equinox's bound methods are)."""
+
+    method: Callable = eqx.field(static=True)
+    instance: Any
+
+    def __call__(self, *args, **kwargs):
+        return self.method(self.instance, *args, **kwargs)
+
+
+class BoundOnce(Generic[_Self, _Params, _Return]):
+    """A method whose bound form (`_Bound`, a pytree of the instance as equinox's own bound
+    methods are) is built once per instance and kept on it. Equinox builds its bound method
+    at every attribute access, which walks the whole module in Python: 0.1–0.5 ms for a robot
+    of 13–78 links, more than the call it precedes."""
+
+    def __init__(self, method: Callable[Concatenate[_Self, _Params], _Return]):
+        self.method = method
+        self.__doc__, self.__wrapped__ = method.__doc__, method  # for help() and inspect
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    @overload
+    def __get__(self, instance: None, owner: Any = None
+                ) -> Callable[Concatenate[_Self, _Params], _Return]: ...
+
+    @overload
+    def __get__(self, instance: _Self, owner: Any = None) -> Callable[_Params, _Return]: ...
+
+    def __get__(self, instance, owner=None):
+        if instance is None:
+            return self.method
+        bound = instance.__dict__.get("_bound_methods")
+        if bound is None:  # the module is frozen: a cache beside its fields, not one of them
+            bound = {}
+            object.__setattr__(instance, "_bound_methods", bound)
+        method = bound.get(self.name)
+        if method is None:
+            method = bound[self.name] = _Bound(self.method, instance)
+        return method
 
 
 def public_function(num_static: int = 1, chunked: bool = True):

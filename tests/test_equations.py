@@ -101,6 +101,21 @@ def test_jit_of_a_bound_method_for_every_formulation(formulation):
                  rtol=1e-14)
 
 
+def test_a_bound_method_is_built_once_per_instance():
+    """Equinox builds a bound method (a pytree walking the whole module) at every attribute
+    access; jaxdyn's public methods keep theirs on the instance: the same object each time,
+    and another instance's own."""
+    system, _ = _sleigh()
+    dynamics = jaxdyn.Lagrangian.from_system(system)
+    assert dynamics.accelerations is dynamics.accelerations
+    assert dynamics.mass_matrix is not dynamics.accelerations
+    other = jaxdyn.Lagrangian.from_system(system)
+    assert other.accelerations is not dynamics.accelerations
+    q, u, p = np.array([0.1, 0.2, 0.3]), np.array([1.0, -0.5, 0.4]), {"a": 0.3}
+    assert_close(other.accelerations(0.0, q, u, p), dynamics.accelerations(0.0, q, u, p),
+                 rtol=0)
+
+
 # ---------------------------------------------------------------------------------------------
 # Branch-free evaluation: NaN where the equations fail, with throw=False
 # ---------------------------------------------------------------------------------------------
