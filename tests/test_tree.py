@@ -434,6 +434,7 @@ def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
     lowered so that the tree is scanned), and the derivatives in q, u against central
     differences."""
     monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
+    monkeypatch.setattr(jaxdyn._system.tree, "POSES_LOOP_MAX", 1)  # the poses scanned too
     inertia = jnp.asarray(INERTIA)
     arm = _floating_arm()
     tree = jaxdyn.RigidBodyTree(list(arm.links) + [

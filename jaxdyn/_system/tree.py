@@ -43,6 +43,11 @@ from .joints import AbstractJoint, Fixed
 # (straight-line code).
 LOOP_MAX = 24
 
+# The links' poses alone, a rotation and an offset composed per link, are straight-line code up
+# to this many links: Talos's 45 cost 1.6 µs per state against 2.1 level by level, its mass
+# matrix 6.2–6.9 against 7.3–7.8 µs, for 0.7 s more compile.
+POSES_LOOP_MAX = 64
+
 JOINT_ARGS = ("q", "u", "p")
 
 
@@ -716,6 +721,12 @@ class RigidBodyTree(AbstractMultibody):
             return (spatial.matmul(rotation_wp, rotation_pc),
                     origin_wp + spatial.matvec(rotation_wp, origin_pc))
 
+        if len(self.links) <= POSES_LOOP_MAX:
+            poses = []
+            for i, parent in enumerate(self.parents):
+                pose = (rotation[i], translation[i])
+                poses.append(pose if parent < 0 else step(poses[parent], pose))
+            return jnp.stack([r for r, _ in poses]), jnp.stack([r for _, r in poses])
         root = (jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype))
         return self.forward(step, root, (rotation, translation))
 
