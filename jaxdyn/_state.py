@@ -222,27 +222,35 @@ _Return = TypeVar("_Return")
 
 
 class _Bound(eqx.Module):
-    """`instance.method`, a pytree of the instance (what equinox's bound methods are)."""
+    """`instance.method`, a pytree of the instance (what equinox's bound methods are), with
+    the method's name, docstring and signature (`__wrapped__`, for `help` and `inspect`)."""
 
     method: Callable = eqx.field(static=True)
     instance: Any
 
+    def __post_init__(self):
+        for name in ("__module__", "__name__", "__qualname__", "__doc__"):
+            if hasattr(self.method, name):
+                object.__setattr__(self, name, getattr(self.method, name))
+
     def __call__(self, *args, **kwargs):
         return self.method(self.instance, *args, **kwargs)
+
+    @property
+    def __wrapped__(self):
+        return self.method.__get__(self.instance, type(self.instance))
 
 
 class BoundOnce(Generic[_Self, _Params, _Return]):
     """A method whose bound form (`_Bound`, a pytree of the instance as equinox's own bound
     methods are) is built once per instance and kept on it. Equinox builds its bound method
     at every attribute access, which walks the whole module in Python: 0.1–0.5 ms for a robot
-    of 13–78 links, more than the call it precedes."""
+    of 13–78 links, more than the call it precedes. (The instance and its cache refer to each
+    other: Python's cyclic collector frees them.)"""
 
     def __init__(self, method: Callable[Concatenate[_Self, _Params], _Return]):
         self.method = method
         self.__doc__, self.__wrapped__ = method.__doc__, method  # for help() and inspect
-
-    def __set_name__(self, owner, name):
-        self.name = name
 
     @overload
     def __get__(self, instance: None, owner: Any = None
@@ -254,13 +262,16 @@ class BoundOnce(Generic[_Self, _Params, _Return]):
     def __get__(self, instance, owner=None):
         if instance is None:
             return self.method
-        bound = instance.__dict__.get("_bound_methods")
-        if bound is None:  # the module is frozen: a cache beside its fields, not one of them
-            bound = {}
-            object.__setattr__(instance, "_bound_methods", bound)
-        method = bound.get(self.name)
+        # The module is frozen: a cache beside its fields, not one of them, with its owner
+        # (a `copy.copy` of the module shares its attributes, and gets a cache of its own).
+        # Keyed by the descriptor: a subclass's override and the method it overrides differ.
+        cache = instance.__dict__.get("_bound_methods")
+        if cache is None or cache[0] is not instance:
+            cache = (instance, {})
+            object.__setattr__(instance, "_bound_methods", cache)
+        method = cache[1].get(self)
         if method is None:
-            method = bound[self.name] = _Bound(self.method, instance)
+            method = cache[1][self] = _Bound(self.method, instance)
         return method
 
 

@@ -2,6 +2,9 @@
 work a system does not need skipped — each checked to leave the results unchanged against
 independent oracles (closed forms, NumPy linear algebra)."""
 
+import copy
+import inspect
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -111,6 +114,15 @@ def test_a_bound_method_is_built_once_per_instance():
     assert dynamics.mass_matrix is not dynamics.accelerations
     other = jaxdyn.Lagrangian.from_system(system)
     assert other.accelerations is not dynamics.accelerations
+    copied = copy.copy(dynamics)  # shares the original's attributes, the cache among them
+    assert copied.accelerations is not dynamics.accelerations
+    assert copied.accelerations is copied.accelerations
+    assert dynamics.accelerations is dynamics.accelerations
+    rebuilt = jax.tree_util.tree_map(lambda x: x, dynamics)
+    assert rebuilt.accelerations is not dynamics.accelerations
+    # What `help` and `inspect` show, as for any bound method
+    assert dynamics.accelerations.__doc__ == type(dynamics).accelerations.__doc__
+    assert list(inspect.signature(dynamics.accelerations).parameters)[:4] == ["t", "q", "u", "p"]
     q, u, p = np.array([0.1, 0.2, 0.3]), np.array([1.0, -0.5, 0.4]), {"a": 0.3}
     assert_close(other.accelerations(0.0, q, u, p), dynamics.accelerations(0.0, q, u, p),
                  rtol=0)

@@ -61,8 +61,8 @@ def _chains(tree: RigidBodyTree) -> tuple[np.ndarray, list[tuple[int, int, int]]
     of the one before), each as (first, last, end) in that order: the chain's own speeds are
     [first, last) and its subtree's [first, end). A speed of a chain moves the links of every
     speed after it up to `end`, and no other link of the chain."""
-    n = len(tree.links)
-    children = [[k for k in range(n) if tree.parents[k] == i] for i in range(n)]
+    n, parents = len(tree.links), tree.parents
+    children = [[k for k in range(n) if parents[k] == i] for i in range(n)]
     slices = tree.speed_slices()
     own = [range(slices[link.name].start, slices[link.name].stop) for link in tree.links]
     order, chains = [], []
@@ -79,7 +79,7 @@ def _chains(tree: RigidBodyTree) -> tuple[np.ndarray, list[tuple[int, int, int]]
             visit(child)
         chains.append((first, last, len(order)))
 
-    for root in (i for i in range(n) if tree.parents[i] < 0):
+    for root in (i for i in range(n) if parents[i] < 0):
         visit(root)
     return np.asarray(order, dtype=int), chains
 
@@ -94,11 +94,11 @@ def composite_mass_matrix(tree: RigidBodyTree, t, q, p):
                                          inertia_at_origin(parameters), rotation, origin)
     # The subtree sums as one add per link, leaves first: on robots a few hundred additions,
     # where a product with the subtree-membership matrix costs N² per parameter.
-    n = len(tree.links)
+    n, parents = len(tree.links), tree.parents
     summed = list(jnp.concatenate([mass[:, None], first_moment, inertia.reshape(n, 9)], 1))
     for k in reversed(range(n)):
-        if tree.parents[k] >= 0:
-            summed[tree.parents[k]] = summed[tree.parents[k]] + summed[k]
+        if parents[k] >= 0:
+            summed[parents[k]] = summed[parents[k]] + summed[k]
     composite = jnp.stack(summed)
 
     order, chains = _chains(tree)

@@ -153,6 +153,8 @@ def inverse_dynamics_regressor(tree: RigidBodyTree, q, u, ud, p=None) -> jax.Arr
     Y_ij = s_i · X_j^* A_j. `jax.vmap` it over states.
     """
     q, u, ud = _checked(tree, q, u, ud)
+    if tree.num_speeds == 0:  # every link fixed: no joint force to explain
+        return jnp.zeros((0, 10 * len(tree.links)), q.dtype)
     bodies = tree.merge_fixed()  # the links welded by fixed joints: one body each
     t = jnp.zeros((), q.dtype)
     motion, _ = link_motion(bodies, q, u, ud, bodies.gravity_vector(p, q.dtype))
