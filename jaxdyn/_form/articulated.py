@@ -174,9 +174,9 @@ def _kinematics_in_ground_axes(tree, t, q, u, p, subspaces, dtype):
     wherever it is in the world): no transform between links, v_i = v_λ(i) + s_i u_i; the
     subspaces and the inertias carried there once, for all links together (the parallel-axis
     theorem, `composite.placed`)."""
-    # In the recursions' own form (this runs beyond `LOOP_MAX` links only): straight-line
-    # poses would add 0.8 s to Talos's 4.2 s compile.
-    rotation, origin = tree.link_poses(t, q, p, straight_max=0)
+    # In the recursions' own form: straight-line poses would add 0.8 s to Talos's 4.2 s
+    # compile.
+    rotation, origin = tree.link_poses(t, q, p, alone=False)
     origin = origin - origin[:1]
 
     def to_ground(omega, velocity):  # link axes about the link's origin → ground axes

@@ -562,23 +562,25 @@ class RigidBodyTree(AbstractMultibody):
     def _is_chain(self):
         return all(parent == i - 1 for i, parent in enumerate(self.parents))
 
-    def scan_head(self) -> int:
+    def scan_head(self, loop_max: int | None = None) -> int:
         """How many leading links a recursion takes one by one before its `lax.scan` (trees of
-        more than `LOOP_MAX` links; all of them below): the roots on joints of more than one
-        speed, such as a floating base, so that the links in the scan carry the width of their
-        own joints (one speed each in most robots), not the base's six."""
+        more than `loop_max` links, default `LOOP_MAX`; all of them below): the roots on
+        joints of more than one speed, such as a floating base, so that the links in the scan
+        carry the width of their own joints (one speed each in most robots), not the base's
+        six."""
         n = len(self.links)
-        if n <= LOOP_MAX:
+        if n <= (LOOP_MAX if loop_max is None else loop_max):
             return n
         head = 0
         while head < n and self.parents[head] < 0 and self.links[head].joint.nv > 1:
             head += 1
         return head
 
-    def forward(self, step, root, per_link):
+    def forward(self, step, root, per_link, *, loop_max=None):
         """The parent-to-child recursion: state_i = step(state of parent(i), per_link[i]), with
-        `root` the world's state; returns the stacked states of the links."""
-        head = self.scan_head()
+        `root` the world's state; returns the stacked states of the links. Straight-line code
+        up to `loop_max` links (`scan_head`)."""
+        head = self.scan_head(loop_max)
         tree_map = jax.tree_util.tree_map
 
         def passed_on(parent, data):
@@ -712,10 +714,10 @@ class RigidBodyTree(AbstractMultibody):
                 jnp.zeros(3, dtype))
         return self.forward(step, root, (rotation, translation, omega_j, velocity_j))
 
-    def link_poses(self, t, q, p, *, straight_max=None):
-        """(R_WC (N, 3, 3), r_WC (N, 3)): the links' frames in the world; as straight-line
-        code up to `straight_max` links (default `POSES_LOOP_MAX`), else as the recursions
-        run (`forward`)."""
+    def link_poses(self, t, q, p, *, alone=True):
+        """(R_WC (N, 3, 3), r_WC (N, 3)): the links' frames in the world. `alone`: the poses
+        are all the caller's recursion over links, and are straight-line code up to
+        `POSES_LOOP_MAX` links; else they run as the tree's recursions do (`LOOP_MAX`)."""
         rotation, translation = self.joint_motion(q)
 
         def step(parent, link):
@@ -724,14 +726,9 @@ class RigidBodyTree(AbstractMultibody):
             return (spatial.matmul(rotation_wp, rotation_pc),
                     origin_wp + spatial.matvec(rotation_wp, origin_pc))
 
-        if len(self.links) <= (POSES_LOOP_MAX if straight_max is None else straight_max):
-            poses = []
-            for i, parent in enumerate(self.parents):
-                pose = (rotation[i], translation[i])
-                poses.append(pose if parent < 0 else step(poses[parent], pose))
-            return jnp.stack([r for r, _ in poses]), jnp.stack([r for _, r in poses])
         root = (jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype))
-        return self.forward(step, root, (rotation, translation))
+        return self.forward(step, root, (rotation, translation),
+                            loop_max=POSES_LOOP_MAX if alone else None)
 
     # -- inertia, energies and forces ---------------------------------------------------------
 
