@@ -29,6 +29,7 @@ import contextvars
 import math
 from typing import Literal, TypeGuard, cast, overload
 
+import equinox as eqx
 import jax
 import jax.core
 import jax.numpy as jnp
@@ -54,6 +55,9 @@ MAX_TRIED = 40_000
 # Programs analysed for their structure (`structure`), which emits nothing: Python time alone,
 # about 0.1 s for the equations of a 20-link chain.
 MAX_ANALYSED = 200_000
+# Programs differentiated (`jax.jvp`, `jax.grad`) as straight-line code up to this many scalar
+# operations; larger ones are differentiated as arrays (see `_straight_line`).
+MAX_DIFFERENTIATED = 500
 
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
     "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
@@ -149,21 +153,98 @@ def unrolled(fn, *args, otherwise=None, max_elements: int | None = None,
     `max_elements` 0; with `chunked`, that array program runs in chunks of a few states
     under `jax.vmap` (`jaxdyn._chunking`).
 
+    Derivatives (`jax.jvp`, and so `jax.grad` through a solve) are those of ``fn``'s program
+    written as straight-line code only while that is small (`MAX_DIFFERENTIATED`), else of
+    the same program run on arrays: see `_straight_line`.
+
     `args` are pytrees of arrays; the result has the structure of ``fn(*args)``.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
     limit = MAX_ELEMENTS if max_elements is None else max_elements
+    array_program = fn if otherwise is None else otherwise
+    if chunked:
+        array_program = chunked_vmap(array_program)
     try:
         if limit <= 0:  # no attempt: not even the trace that would find it too large
             raise _Fallback
         closed, out_struct = _traced(fn, leaves, treedef, limit)
-        outs = evaluate(closed, leaves, limit)
+        out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
+        outs = _straight_line(closed, leaves, limit, [s.dtype for s in out_leaves],
+                              array_program if otherwise is not None else None, treedef)
     except _Fallback:
-        array_program = fn if otherwise is None else otherwise
-        return (chunked_vmap(array_program) if chunked else array_program)(*args)
-    out_leaves, out_treedef = jax.tree_util.tree_flatten(out_struct)
-    arrays = [assemble(o, s.dtype) for o, s in zip(outs, out_leaves)]
-    return jax.tree_util.tree_unflatten(out_treedef, arrays)
+        return array_program(*args)
+    return jax.tree_util.tree_unflatten(out_treedef, outs)
+
+
+def _straight_line(closed, leaves, limit, dtypes, array_program, treedef):
+    """The outputs of the closed jaxpr on `leaves` as straight-line code (raising `_Fallback`
+    when it emits more than `limit` operations), whose derivative (`jax.jvp`, and so
+    `jax.grad` through a solve) is that of the straight-line code only up to
+    `MAX_DIFFERENTIATED` operations, and beyond it that of `array_program` (a function of the
+    arguments' pytree `treedef`), or of the jaxpr run on arrays where none is given.
+
+    Why: JAX differentiates a program one operation at a time in Python, and XLA compiles the
+    result; a program of thousands of scalar operations becomes tens of thousands once
+    linearised and transposed. Reverse mode through a solve of a chain of 10 rods (2862
+    operations) spent 18 s tracing and 37 s compiling that way; with its array program's
+    derivative, 5 s and 8 s, and the gradient runs as fast (its backward pass is dominated by
+    the checkpointed re-solve, not by the vector field). Small programs keep the
+    straight-line derivative, which is what makes them fast inside a sensitivity solve.
+
+    Everything a derivative may reach is an explicit input of a `jax.custom_jvp`: the traced
+    leaves, the traced constants of the jaxpr (values closed over) and the arrays of
+    `array_program`. Concrete leaves and constants stay closed over, so that they still fold
+    at trace time. Where the jaxpr closes over traced values that `array_program` does not hold
+    as arrays (a user's function closing over a traced value), the jaxpr itself is the array
+    program.
+    """
+    traced = [i for i, c in enumerate(closed.consts) if not _is_concrete(c)]
+    inputs = [i for i, x in enumerate(leaves) if not _is_concrete(x)]
+    program_arrays, program_rest = eqx.partition(array_program, eqx.is_array)
+    held = {id(x) for x in jax.tree_util.tree_leaves(program_arrays)}
+    if any(id(closed.consts[i]) not in held for i in traced):
+        array_program, program_arrays = None, None
+
+    def complete(consts, xs):
+        full_consts, full_leaves = list(closed.consts), list(leaves)
+        for i, c in zip(traced, consts):
+            full_consts[i] = c
+        for i, x in zip(inputs, xs):
+            full_leaves[i] = x
+        return jex.ClosedJaxpr(closed.jaxpr, full_consts), full_leaves
+
+    def evaluated(consts, xs, budget):
+        program, full_leaves = complete(consts, xs)
+        outs = evaluate(program, full_leaves, budget)
+        return [assemble(o, d) for o, d in zip(outs, dtypes)]
+
+    @jax.custom_jvp
+    def jaxdyn_straight_line(consts, xs, arrays):  # (the name marks it: `_is_straight_line`)
+        return evaluated(consts, xs, limit)
+
+    @jaxdyn_straight_line.defjvp
+    def derivative(primals, tangents):
+        def differentiable(consts, xs, arrays):
+            try:
+                return evaluated(consts, xs, min(limit, MAX_DIFFERENTIATED))
+            except _Fallback:
+                program, full_leaves = complete(consts, xs)
+                if array_program is None:
+                    return jex.jaxpr_as_fun(program)(*full_leaves)
+                fn = eqx.combine(arrays, program_rest)
+                return jax.tree_util.tree_leaves(
+                    fn(*jax.tree_util.tree_unflatten(treedef, full_leaves)))
+
+        return jax.jvp(differentiable, primals, tangents)
+
+    return jaxdyn_straight_line([closed.consts[i] for i in traced],
+                                [leaves[i] for i in inputs], program_arrays)
+
+
+def _is_straight_line(closed) -> bool:
+    """Whether a custom_jvp_call's function is `_straight_line`'s."""
+    info = getattr(closed.jaxpr, "debug_info", None)
+    return "jaxdyn_straight_line" in str(getattr(info, "func_src_info", ""))
 
 
 def straight_line_size(fn, *args, max_elements: int | None = None) -> int | None:
@@ -330,6 +411,10 @@ def _size(jaxpr) -> int:
 
 
 def _inline_jaxpr(eqn):
+    if eqn.primitive.name == "custom_jvp_call" and _is_straight_line(eqn.params["call_jaxpr"]):
+        # straight-line code of `unrolled` within a program written out again: its
+        # elements, whose derivative the outer program's rule then gives
+        return eqn.params["call_jaxpr"]
     if eqn.primitive.name in _INLINE:
         sub = eqn.params.get("jaxpr")
         if isinstance(sub, jex.ClosedJaxpr):
@@ -388,7 +473,8 @@ def _on_arrays(eqn, ins):
                                       if isinstance(e, Symbol)))
         return [_filled(v.aval.shape, Symbol(depends)) for v in eqn.outvars]
     arrays = [assemble(x, v.aval.dtype) for x, v in zip(ins, eqn.invars)]
-    outs = eqn.primitive.bind(*arrays, **eqn.params)
+    # (bind parameters, not the equation's: a custom_jvp_call binds its functions, for one)
+    outs = eqn.primitive.bind(*arrays, **eqn.primitive.get_bind_params(eqn.params))
     outs = outs if eqn.primitive.multiple_results else [outs]
     return [split(o) for o in outs]
 
