@@ -50,6 +50,9 @@ from ._fit.parametrisation import (
 from ._fit.uncertainty import Uncertainty as Uncertainty
 from ._equilibria import Equilibrium as Equilibrium, equilibrium as equilibrium
 from ._integrate import simulate as simulate
+from ._integrate.events import EventRecord as EventRecord
+from ._events import AbstractEvent as AbstractEvent, Event as Event
+from ._form.impact import UnilateralContact as UnilateralContact
 from ._linearisation import (
     LinearModel as LinearModel,
     Modes as Modes,

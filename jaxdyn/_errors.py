@@ -71,7 +71,12 @@ def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=N
     # batch member has failed.
     flag = jax.lax.cond(eqxi.unvmap_any(failed), fail, lambda: jnp.zeros((), jnp.bool_))
     # Tie x to the check, so that it is not removed as unused: adding 0 (XLA keeps 0·flag).
-    return jax.tree_util.tree_map(lambda a: a + jnp.zeros((), a.dtype) * flag.astype(a.dtype), x)
+    # Integer and boolean leaves through a floating-point zero (XLA folds 0·n for integers).
+    zero = jnp.zeros((), jnp.float32) * flag.astype(jnp.float32)
+    return jax.tree_util.tree_map(
+        lambda a: a + jnp.zeros((), a.dtype) * flag.astype(a.dtype)
+        if jnp.issubdtype(a.dtype, jnp.inexact) else
+        (a | zero.astype(a.dtype)) if a.dtype == jnp.bool_ else a + zero.astype(a.dtype), x)
 
 
 def _labelled(state):

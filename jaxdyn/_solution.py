@@ -22,6 +22,13 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "are finite: the kinematic map q̇ = K(q) u, or an intermediate value of a callback, "
         "is not finite there."
     )
+    max_events_reached = (
+        "The solve met more events than its budget (simulate's max_events) before t1; it "
+        "stopped at the event past the budget, whose time and state are the solution's last. "
+        "Pass a larger max_events; if the events crowd towards one instant (impacts whose "
+        "approach speeds shrink geometrically, a Zeno sequence), the contact is coming to "
+        "rest there."
+    )
     nonfinite_state_or_parameters = (
         "The initial state or the parameters contain NaN or inf (simulate or simulate_batch "
         "with throw=False): the results are NaN."
@@ -64,6 +71,8 @@ class Solution(eqx.Module):
       included "inputs" (a `jaxdyn.Controlled` system), else None.
     - `dense`: the underlying `diffrax.Solution` when `dense=True` was asked for, else None;
       use `evaluate`.
+    - `events`: a `jaxdyn.EventRecord` of the events met when `simulate` was given events
+      (times, guards, states before and after, impulses), else None.
     """
 
     ts: Float[Array, " k"]
@@ -78,6 +87,7 @@ class Solution(eqx.Module):
     constraints: ConstraintRecord | None = None
     inputs: Float[Array, "k r"] | None = None
     layout: Any = None  # how `dense` holds (q, u): `layout.split(y)` gives them
+    events: Any = None  # an `EventRecord` when simulate was given events
 
     def evaluate(self, t):
         """(q(t), u(t)) from the solver's dense interpolant (needs `dense=True`)."""

@@ -1,0 +1,118 @@
+"""Discontinuities of the motion: what `simulate` sees of events, and events given by the user.
+
+A hybrid system flows by its equations of motion until a guard g(t, q, u, p) crosses zero;
+then its state jumps, (q⁻, u⁻) → (q⁺, u⁺), or the motion stops, and the flow restarts from the
+new state. `simulate` locates the crossings and restarts the solve; it knows only this
+protocol: the guards, their direction of crossing, and the jump. A user's own guard and reset
+(`Event`) and the impacts of unilateral contacts (`jaxdyn.UnilateralContact`, whose jump is an
+impact law) implement it.
+
+Reference: R. Goebel, R. G. Sanfelice, A. R. Teel, Hybrid Dynamical Systems (2012); for the
+derivative of a located event, the saltation matrix: M. A. Aizerman, F. R. Gantmacher, "On the
+stability of periodic motions", J. Appl. Math. Mech. 22 (1958).
+"""
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._convention import call, vector
+
+#: The directions of a crossing that trigger an event: from positive to negative (a gap
+#: closing), from negative to positive, or both.
+DIRECTIONS = {"falling": False, "rising": True, "either": None}
+
+
+class AbstractEvent(eqx.Module):
+    """Guards whose zero crossings interrupt the motion, and what happens then.
+
+    Subclasses give `guards` (k values, each one event), `direction` (which crossings count)
+    and `jump`; `terminal` events stop the motion instead of jumping.
+    """
+
+    direction: eqx.AbstractVar[str]
+    terminal: eqx.AbstractVar[bool]
+
+    @abc.abstractmethod
+    def guards(self, dynamics, t, q, u, p) -> jax.Array:
+        """The guard values g(t, q, u, p), shape (k,): an event where one crosses zero."""
+
+    @abc.abstractmethod
+    def jump(self, dynamics, t, q, u, p, fired) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """(q⁺, u⁺, impulses (k,)) from the state (q, u) at which the guards `fired` (k
+        booleans) crossed zero."""
+
+
+class Event(AbstractEvent):
+    r"""An event given by its guard and its reset map.
+
+    When the guard $g(t, q, u, p)$ crosses zero in `direction`, the state jumps by the reset
+    $(q^+, u^+) = \Delta(t, q^-, u^-, p)$ (a walker's stance-leg swap, a switch of mode), or,
+    with no reset, the motion stops there (`simulate` then saves NaN after that time).
+
+    **Arguments:**
+
+    - `guard`: g(q, u, p) → a scalar or a vector of k guards (each an event of its own);
+      g(t, q, u, p) with `time_dependent=True`.
+    - `reset`: Δ(q, u, p) → (q⁺, u⁺), or Δ(t, q, u, p) with `time_dependent=True`; None stops
+      the motion at the event.
+    - `direction`: "falling" (g from positive to negative, the default), "rising", or
+      "either".
+    - `time_dependent`: the callbacks take t first.
+
+    **Example:**
+
+        # stop when the pendulum first passes the vertical, moving to the left
+        stop = jaxdyn.Event(lambda q, u, p: q[0], direction="falling")
+        sol = jaxdyn.simulate(pendulum, q0, u0, p, t1=10.0, events=[stop])
+        sol.events.t[0]   # the time of the crossing
+    """
+
+    guard: Callable
+    reset: Callable | None = None
+    direction: str = eqx.field(default="falling", static=True)
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        check_direction(self.direction)
+
+    @property
+    def terminal(self) -> bool:
+        return self.reset is None
+
+    def guards(self, dynamics, t, q, u, p):
+        value = call(self.guard, "guard g", self.time_dependent, ("q", "u", "p"), t, q, u, p)
+        return as_guards(value, "guard g")
+
+    def jump(self, dynamics, t, q, u, p, fired):
+        k = fired.shape[0]
+        if self.reset is None:
+            return q, u, jnp.zeros((k,), q.dtype)
+        value = call(self.reset, "reset Δ", self.time_dependent, ("q", "u", "p"), t, q, u, p)
+        if not (isinstance(value, tuple | list) and len(value) == 2):
+            raise ValueError("The reset Δ must return a pair (q⁺, u⁺), got "
+                             f"{type(value).__name__}.")
+        q_plus = vector(value[0], "reset Δ's q⁺", q.shape)
+        u_plus = vector(value[1], "reset Δ's u⁺", u.shape)
+        return q_plus.astype(q.dtype), u_plus.astype(u.dtype), jnp.zeros((k,), q.dtype)
+
+
+def check_direction(direction):
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be one of {', '.join(map(repr, DIRECTIONS))}, got "
+                         f"{direction!r}.")
+
+
+def as_guards(value, name: str) -> jax.Array:
+    """A guard function's value as a vector of guards (a scalar is one guard)."""
+    value = jnp.asarray(value)
+    if value.ndim > 1:
+        raise ValueError(f"The {name} must return a scalar or a vector, got shape "
+                         f"{value.shape}.")
+    if not jnp.issubdtype(value.dtype, jnp.floating):
+        raise ValueError(f"The {name} must return real values (a zero crossing is located), "
+                         f"got dtype {value.dtype}.")
+    return jnp.atleast_1d(value)

@@ -1,0 +1,251 @@
+"""The solve of a hybrid system: flows between events, each event located and the solve
+restarted after its jump, in a loop of a fixed number of segments (so that `jax.jit`,
+`jax.vmap`, `jax.grad` and `jax.jacfwd` all apply).
+
+Each segment is one `diffrax.diffeqsolve` from the last event to t1 that stops at the first
+zero crossing of a guard, located by Newton's method on the step's dense interpolant
+(`diffrax.Event`). Its derivative is that of the located crossing: the event time by the
+implicit function theorem on g(t*, y(t*)) = 0, then the jump's Jacobian, which together give
+the saltation matrix of the event (Aizerman and Gantmacher 1958) for the discrete solve.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float, Int
+
+from .._dynamics import equations_of_motion
+from .._events import DIRECTIONS, AbstractEvent
+from .._solution import RESULTS
+from .solve import vector_field
+
+#: Default budget of events per solve (`simulate(..., max_events=...)`).
+MAX_EVENTS = 16
+
+
+class EventRecord(eqx.Module):
+    """The events of a hybrid solve, in the order they happened (`Solution.events`).
+
+    **Fields** (E = `max_events`; rows past `count` are NaN, and -1 in `guard`):
+
+    - `t`: the event times, shape (E,).
+    - `guard`: which guard fired: its index among all guards of all events, in the order the
+      events were given, each event's guards in order, shape (E,).
+    - `q_minus`, `u_minus`: the state just before the event, shapes (E, n), (E, m).
+    - `q_plus`, `u_plus`: the state just after its jump, shapes (E, n), (E, m).
+    - `guard_rates`: ġ of every guard just before the event, shape (E, K): for an impact, the
+      approach speeds. A crossing with ġ near zero (grazing) has an event time whose
+      derivative is unbounded.
+    - `impulses`: the impulses Λ of impacts, per guard (zero for other events), shape (E, K).
+    - `count`: the number of events that happened, a scalar.
+    """
+
+    t: Float[Array, " E"]
+    guard: Int[Array, " E"]
+    q_minus: Float[Array, "E n"]
+    u_minus: Float[Array, "E m"]
+    q_plus: Float[Array, "E n"]
+    u_plus: Float[Array, "E m"]
+    guard_rates: Float[Array, "E K"]
+    impulses: Float[Array, "E K"]
+    count: Int[Array, ""]
+
+
+class HybridSolution(eqx.Module):
+    """What `simulate` reads of a solve (as of a `diffrax.Solution`), for a hybrid solve."""
+
+    ts: tuple
+    ys: tuple
+    controller_state: tuple
+    result: diffrax.RESULTS
+    stats: dict
+    events: EventRecord
+
+
+def check_events(events, max_events) -> tuple[AbstractEvent, ...]:
+    """Trace-time check of `simulate`'s `events` and `max_events`."""
+    if isinstance(events, AbstractEvent):
+        events = (events,)
+    events = tuple(events)
+    for event in events:
+        if not isinstance(event, AbstractEvent):
+            raise ValueError("events must be jaxdyn events (jaxdyn.Event, "
+                             f"jaxdyn.UnilateralContact), got {type(event).__name__}.")
+    if not isinstance(max_events, int) or max_events < 1:
+        raise ValueError(f"max_events must be a positive int, got {max_events!r}.")
+    return events
+
+
+def _guard_counts(events, dynamics, t, q, u, p):
+    return [jax.eval_shape(lambda e=e: e.guards(dynamics, t, q, u, p)).shape[0]
+            for e in events]
+
+
+def _guard_values(events, dynamics, t, q, u, p):
+    return jnp.concatenate([e.guards(dynamics, t, q, u, p) for e in events])
+
+
+def _guard_rates(events, dynamics, t, q, u, p, factorisation):
+    """ġ of every guard along the motion at (t, q, u): one JVP along (1, q̇, u̇)."""
+    rates, accelerations, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+    rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
+    return jax.jvp(lambda t, q, u: _guard_values(events, dynamics, t, q, u, p),
+                   (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
+
+
+def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
+                 events, max_events):
+    """Segments of `diffrax.diffeqsolve` between events, at most `max_events` events.
+
+    `args` is the vector field's (dynamics, p, factorisation, layout); `saveat` is
+    `simulate`'s (the requested states, then the last state). Returns a `HybridSolution`."""
+    dynamics, p, factorisation, layout = args
+    q0, u0 = layout.split(y0)
+    counts = _guard_counts(events, dynamics, t0, q0, u0, p)
+    total = sum(counts)
+    owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
+    owner = jnp.asarray(owner_list, jnp.int32)
+    requested = saveat.subs[0]
+    dtype = y0.dtype
+    tiny = jnp.finfo(dtype).tiny
+
+    def condition(index, direction):
+        def cond_fn(t, y, args, **kwargs):
+            dynamics, p, _, _, (t_start, leaving) = args
+            q, u = layout.split(y)
+            g = _guard_values(events, dynamics, t, q, u, p)[index]
+            # At a restart the guards that just fired sit at zero: their side is the one the
+            # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
+            # handled is not found again.
+            side = leaving[index] * jnp.maximum(jnp.abs(g), tiny)
+            return jnp.where((t == t_start) & (leaving[index] != 0), side, g)
+        return cond_fn
+
+    conds, directions = [], []
+    for event, count in zip(events, counts):
+        for _ in range(count):
+            conds.append(condition(len(conds), event.direction))
+            directions.append(DIRECTIONS[event.direction])
+    root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
+                              atol=1e-12 if dtype == jnp.float64 else 1e-6)
+    event = diffrax.Event(conds, root_finder, directions)
+
+    ts_requested = requested.ts
+
+    def segment(carry, index):
+        (t_start, y_start, leaving, done, saved, last, result, steps, count) = carry
+        t_from = jnp.where(done, t1, t_start)
+        if ts_requested is None:
+            sub = diffrax.SubSaveAt(t1=True, fn=requested.fn)
+        else:
+            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=requested.fn)
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field), solver, t_from, t1, dt0, y_start,
+            args=(*args, (t_from, leaving)),
+            saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
+                                  controller_state=True),
+            stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps,
+            event=event, throw=False)
+        ran = ~done
+        fired = jnp.stack(solution.event_mask) & ran
+        happened = jnp.any(fired)
+        (requested_ys, last_y) = solution.ys
+        t_end = solution.ts[1][0]
+        y_end = last_y[0]
+        # The requested states this segment covers: (t_start, t_end], and t0 itself.
+        if ts_requested is None:
+            saved = jax.tree_util.tree_map(lambda new, old: jnp.where(ran, new, old),
+                                           requested_ys, saved)
+        else:
+            covered = ((ts_requested > t_from) | ((index == 0) & (ts_requested >= t_from))) & (
+                ts_requested <= t_end) & ran
+            saved = jax.tree_util.tree_map(
+                lambda new, old: jnp.where(covered.reshape((-1,) + (1,) * (new.ndim - 1)),
+                                           new, old), requested_ys, saved)
+        # The jump of the event whose guard fired (one event object fires at a time).
+        q, u = layout.split(y_end)
+        which = jnp.argmax(fired)
+        fired_owner = owner[which]
+        guard_rates = _guard_rates(events, dynamics, t_end, q, u, p, factorisation)
+
+        def jump(i):
+            mine = np.array([k for k, o in enumerate(owner_list) if o == i])
+
+            def apply():
+                q_plus, u_plus, impulses = events[i].jump(
+                    dynamics, t_end, q, u, p, fired[mine])
+                return q_plus, u_plus, jnp.zeros((total,), dtype).at[mine].set(impulses)
+            return apply
+
+        terminal = jnp.asarray([e.terminal for e in events])[fired_owner]
+        q_plus, u_plus, impulses = jax.lax.switch(fired_owner, [jump(i) for i in
+                                                                range(len(events))])
+        apply_jump = happened & ~terminal & (index < max_events)
+        q_plus = jnp.where(apply_jump, q_plus, q)
+        u_plus = jnp.where(apply_jump, u_plus, u)
+        impulses = jnp.where(apply_jump, impulses, 0.0)
+        y_next = layout.join(q_plus, u_plus)
+        # ġ just after the jump: which side each fired guard leaves towards.
+        rates_after = _guard_rates(events, dynamics, t_end, q_plus, u_plus, p, factorisation)
+        leaving_next = jnp.where(fired, jnp.sign(rates_after), 0.0).astype(dtype)
+
+        segment_result = diffrax.RESULTS.where(
+            solution.result == diffrax.RESULTS.event_occurred, diffrax.RESULTS.successful,
+            solution.result)
+        failed = ran & (segment_result != diffrax.RESULTS.successful)
+        exhausted = ran & happened & ~terminal & (index >= max_events)
+        new_result = RESULTS.where(failed, RESULTS.promote(segment_result), result)
+        new_result = RESULTS.where(exhausted, RESULTS.max_events_reached, new_result)
+        stalled = solution.controller_state[-1]
+        last = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(ran, new, old),
+            (t_end, y_end, stalled), last)
+        steps = jax.tree_util.tree_map(
+            lambda total, s: total + jnp.where(ran, s, 0), steps,
+            (solution.stats["num_steps"], solution.stats["num_accepted_steps"],
+             solution.stats["num_rejected_steps"]))
+        record = (jnp.where(happened, t_end, jnp.nan),
+                  jnp.where(happened, which, -1),
+                  jnp.where(happened, q, jnp.nan), jnp.where(happened, u, jnp.nan),
+                  jnp.where(apply_jump, q_plus, jnp.nan),
+                  jnp.where(apply_jump, u_plus, jnp.nan),
+                  jnp.where(happened, guard_rates, jnp.nan),
+                  jnp.where(happened, impulses, jnp.nan))
+        count = count + (happened & (index < max_events)).astype(count.dtype)
+        done = done | ~happened | terminal | failed | exhausted
+        carry = (t_end, y_next, leaving_next, done, saved, last, new_result, steps, count)
+        return carry, record
+
+    if ts_requested is None:
+        saved0 = jax.eval_shape(lambda: requested.fn(t0, y0, args))
+    else:
+        saved0 = jax.eval_shape(lambda: jax.vmap(lambda t: requested.fn(t, y0, args))(
+            ts_requested))
+    saved0 = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), saved0)
+    if ts_requested is None:
+        saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
+    stalled0 = jnp.array(False)
+    zero = jnp.zeros((), jnp.int32)
+    carry0 = (t0, y0, jnp.zeros((total,), dtype), jnp.array(False), saved0,
+              (t0, y0, stalled0), RESULTS.successful, (zero, zero, zero), zero)
+    carry, records = jax.lax.scan(segment, carry0, jnp.arange(max_events + 1))
+    (_, _, _, _, saved, (t_last, y_last, stalled), result, steps, count) = carry
+    records = jax.tree_util.tree_map(lambda x: x[:max_events], records)
+    (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses) = records
+    if ts_requested is None:
+        ts_out = t_last[None]
+    else:
+        ts_out = ts_requested
+    return HybridSolution(
+        ts=(ts_out, t_last[None]),
+        ys=(saved, y_last[None]),
+        controller_state=(None, None, stalled),
+        result=result,
+        stats={"num_steps": steps[0], "num_accepted_steps": steps[1],
+               "num_rejected_steps": steps[2]},
+        events=EventRecord(t=t_events, guard=guard, q_minus=q_minus, u_minus=u_minus,
+                           q_plus=q_plus, u_plus=u_plus, guard_rates=rates,
+                           impulses=impulses, count=count))

@@ -1,0 +1,195 @@
+"""diffrax's solve of the equations of motion: the state's layout, the vector field, and how
+the solve is differentiated (forward sensitivities or reverse mode through checkpoints)."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._dynamics import equations_of_motion
+from .._sensitivities import with_sensitivities
+from .._runge_kutta import UnrolledStages
+from .._wrapped_solver import AbstractForwardingSolver
+from .failures import GuardedAdaptive
+
+
+class Layout(eqx.Module):
+    """How the state (q, u) is held as diffrax's y.
+
+    One vector y = [q; u] for diffrax's own solvers: every per-step operation of a solver
+    (stage combinations, the error norm, interpolation, saving) is then one array operation
+    rather than one per part, which on small systems is most of a step's cost (a two-part
+    state costs 1.4–2.8× the one-vector state per step for the double and elastic pendulums,
+    with the same equations). The pair (q, u) for the structure-preserving steppers, which
+    update coordinates and speeds apart.
+    """
+
+    n: int = eqx.field(static=True)
+    flat: bool = eqx.field(static=True)
+
+    def join(self, q, u):
+        return jnp.concatenate([q, u], axis=-1) if self.flat else (q, u)
+
+    def split(self, y):
+        return (y[..., :self.n], y[..., self.n:]) if self.flat else y
+
+
+def vector_field(t, y, args):
+    dynamics, p, factorisation, layout = args[:4]  # (a hybrid solve's args carry a fifth)
+    q, u = layout.split(y)
+    rates, accelerations, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+    return layout.join(rates, accelerations)
+
+
+def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps, *,
+          forward, events=None, max_events=0):
+    """diffrax's solve of the equations of motion, differentiated by forward sensitivities
+    (`forward`: few inputs, `jaxdyn._sensitivities`) or by `adjoint` (default: reverse mode
+    through checkpoints). Returns the `diffrax.Solution` (`throw=False`: jaxdyn raises its
+    own errors after the solve). With `events`, the solve of a hybrid system
+    (`jaxdyn._integrate.events`: a `HybridSolution`)."""
+    def run(inputs, adjoint, vector_field=vector_field):
+        t0, t1, dt0, y0, args, saveat, controller = inputs
+        if events is not None:
+            from .events import hybrid_solve  # (it builds on this module)
+            return hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint,
+                                max_steps, events, max_events)
+        return diffrax.diffeqsolve(diffrax.ODETerm(vector_field), solver, t0, t1, dt0, y0,
+                                   args=args, saveat=saveat, stepsize_controller=controller,
+                                   adjoint=adjoint, max_steps=max_steps, throw=False)
+
+    inputs = (t0, t1, dt0, y0, args, saveat, controller)
+    if not forward:
+        return run(inputs, diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint)
+    dynamic, static = eqx.partition(inputs, eqx.is_array)
+
+    def arrays_out(dynamic):  # what `simulate` reads of the solution, all arrays
+        solution = run(eqx.combine(dynamic, static), diffrax.ForwardMode())
+        return eqx.filter(solution, eqx.is_array)
+
+    def sensitivity_solve(dynamic, basis):
+        return _sensitivity_equations(run, solver, eqx.combine(dynamic, static), basis)
+
+    return with_sensitivities(arrays_out, dynamic,
+                              sensitivity_solve if events is None else None)
+
+
+def _sensitivity_equations(run, solver, inputs, basis):
+    """The solve of y' = f(t, y, x) together with its forward sensitivity equations
+
+        Ṡ_k = ∂f/∂y S_k + ∂f/∂x e_k,   S_k(t₀) = ∂y₀/∂x e_k,
+
+    for the k directions e_k of `basis` (per leaf of the solve's array inputs, None where
+    not differentiated), as one state z = [y; S₁; …; S_k]: only the vector field is
+    differentiated (one vectorised JVP), not the solver's loop. The error norm reads y
+    alone, so that the steps are the plain solve's, and an explicit Runge–Kutta method
+    applied to the sensitivity equations on those steps is exactly the derivative of its
+    solution at fixed steps (the steps do not depend on x: diffrax's controller stops their
+    gradient), so that S equals what forward mode through the solve gives. Returns the
+    solution's arrays and their sensitivities (`jaxdyn._sensitivities.with_sensitivities`),
+    or None where this does not apply: derivatives with respect to times, tolerances or
+    save times, a state that is not one vector, or a solver other than an explicit
+    Runge–Kutta method.
+
+    Reference: E. Hairer, S. P. Nørsett, G. Wanner, Solving Ordinary Differential Equations
+    I (1993), §I.14 and §II.6 (internal differentiation)."""
+    t0, t1, dt0, y0, args, saveat, controller = inputs
+    counts = [len(jax.tree_util.tree_leaves(eqx.filter(part, eqx.is_array)))
+              for part in inputs]
+    first_y0 = sum(counts[:3])
+    first_args = first_y0 + counts[3]
+    if any(b is not None for b in basis[:first_y0] + basis[first_args + counts[4]:]):
+        return None
+    # By type, not isinstance: diffrax counts a wrapped solver (`Projected`, whose projection
+    # the sensitivities would have to follow) as an instance of the solver it wraps.
+    inner = solver.solver if type(solver) is UnrolledStages else solver
+    if not (issubclass(type(inner), diffrax.AbstractERK) and isinstance(y0, jax.Array)
+            and y0.ndim == 1):
+        return None
+    if saveat.dense:
+        return None
+    n = y0.shape[0]
+    if isinstance(controller, GuardedAdaptive):
+        if not hasattr(controller.controller, "norm"):
+            return None
+        plain_norm = controller.controller.norm
+        controller = eqx.tree_at(lambda c: c.controller.norm, controller,
+                                 lambda error: plain_norm(error[:n]))
+    k = next(b for b in basis if b is not None).shape[0]
+    s0 = basis[first_y0]
+    s0 = jnp.zeros((k, n), y0.dtype) if s0 is None else s0
+    arg_basis = basis[first_args:first_args + counts[4]]
+    differentiated = [i for i, b in enumerate(arg_basis) if b is not None]
+    directions = [arg_basis[i] for i in differentiated]
+
+    def split(z):
+        return z[:n], z[n:].reshape(k, n)
+
+    @eqx.filter_jit  # traced and differentiated once, for every place the solver calls it
+    def field(t, z, augmented):
+        args, directions = augmented
+        y, s = split(z)
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+
+        def rate(y, chosen):  # f(t, y, x) with x the differentiated leaves of args
+            given = list(leaves)
+            for i, x in zip(differentiated, chosen):
+                given[i] = x
+            return vector_field(
+                t, y, eqx.combine(jax.tree_util.tree_unflatten(treedef, given), static))
+
+        chosen = [leaves[i] for i in differentiated]
+        f, rates = jax.vmap(lambda s_k, e_k: jax.jvp(rate, (y, chosen), (s_k, e_k)),
+                            out_axes=(None, 0))(s, directions)
+        return jnp.concatenate([f, rates.reshape(-1)])
+
+    def observed(fn):  # a saved quantity and its sensitivities: (g(y), ∂g/∂y S)
+        def save(t, z, augmented):
+            y, s = split(z)
+            return jax.vmap(lambda s_k: jax.jvp(lambda y: fn(t, y, augmented[0]), (y,), (s_k,)),
+                            out_axes=(None, 0))(s)
+        return save
+
+    subs = saveat.subs if isinstance(saveat.subs, (list, tuple)) else [saveat.subs]
+    saveat = diffrax.SaveAt(subs=[eqx.tree_at(lambda sub: sub.fn, sub, observed(sub.fn))
+                                  for sub in subs],
+                            solver_state=saveat.solver_state,
+                            controller_state=saveat.controller_state,
+                            made_jump=saveat.made_jump)
+    z0 = jnp.concatenate([y0, s0.reshape(-1)])
+    solution = run((t0, t1, dt0, z0, (args, directions), saveat, controller),
+                   diffrax.ForwardMode(), field)
+    out = eqx.filter(eqx.tree_at(lambda s: s.ys, solution, [y for y, _ in solution.ys],
+                                 is_leaf=lambda x: x is None), eqx.is_array)
+    # S for the saved quantities (saved with the time axis first; k moved to the front),
+    # zero for the rest (times, step counts, the controller's state: independent of x).
+    saved = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 1, 0),
+                                   [s for _, s in solution.ys])
+    zeros = jax.tree_util.tree_map(lambda x: jnp.zeros((k, *x.shape), x.dtype),
+                                   eqx.filter(out, eqx.is_inexact_array))
+    return out, eqx.tree_at(lambda s: s.ys, zeros, saved, is_leaf=lambda x: x is None)
+
+
+class Projected(AbstractForwardingSolver):
+    """A diffrax solver whose every step ends with the dynamics' `state_projection` (drift
+    control of constraints). The step's error estimate is the wrapped solver's, before the
+    projection; the next step re-evaluates its first stage at the projected state
+    (`made_jump`), as first-same-as-last solvers would otherwise reuse the unprojected one."""
+
+    solver: diffrax.AbstractSolver
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        y1, y_error, dense_info, solver_state, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state, True)
+        dynamics, p, _, layout = args[:4]
+        y1 = layout.join(*dynamics.state_projection()(t1, *layout.split(y1), p))
+        if "y1" in dense_info:
+            dense_info = dict(dense_info, y1=y1)
+        return y1, y_error, dense_info, solver_state, result
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)

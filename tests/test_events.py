@@ -1,0 +1,418 @@
+"""Events, resets and impacts (`simulate(..., events=...)`), against closed forms, Newton's
+impact law written by hand, an event-located SciPy solve, and finite differences.
+
+One system is compiled per family of tests (module-level functions), so that the file's
+tests share their compiled programs.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.special
+
+import jaxdyn
+from helpers import DOUBLE_PENDULUM, central_difference
+from multibody_systems import _chain
+
+TOL = dict(solver=diffrax.Tsit5(), rtol=1e-11, atol=1e-11)
+G = 9.81
+
+
+# -- a ball bouncing on the ground: impact times and apex heights in closed form -------------
+
+def _ball_T(q, qd, p):
+    return 0.5 * p["m"] * jnp.sum(qd**2)
+
+
+def _ball_V(q, p):
+    return p["m"] * p["g"] * q[1]
+
+
+BALL = jaxdyn.Lagrangian(_ball_T, _ball_V)
+GROUND = jaxdyn.UnilateralContact(lambda q, p: q[1], restitution=lambda p: p["e"])
+
+
+def _bounces(e, h0, *, dynamics=BALL, t1=3.0, max_events=12, adjoint=None, ts=None):
+    p = {"m": 0.7, "g": G, "e": e}
+    return jaxdyn.simulate(dynamics, jnp.array([0.0, h0]), jnp.array([0.4, 0.0]), p, t1=t1,
+                           ts=ts, events=[GROUND], max_events=max_events, adjoint=adjoint,
+                           **TOL)
+
+
+def _impact_times(e, h0, k):
+    """t_1 = √(2h₀/g), each flight after it 2 e^j v₁ / g."""
+    first = np.sqrt(2 * h0 / G)
+    flights = 2 * first * e ** np.arange(1, k)
+    return first + np.concatenate([[0.0], np.cumsum(flights)])
+
+
+def test_ball_impact_times_apexes_and_impulses_closed_form():
+    e, h0 = 0.8, 1.0
+    sol = _bounces(e, h0)
+    count = int(sol.events.count)
+    assert count == 6  # the seventh impact falls after t1 = 3
+    np.testing.assert_allclose(sol.events.t[:count], _impact_times(e, h0, count), rtol=1e-9)
+    assert np.all(np.isnan(sol.events.t[count:])) and np.all(sol.events.guard[count:] == -1)
+    # the vertical speed reverses with factor e; the horizontal one is untouched
+    v_in = np.asarray(sol.events.u_minus[:count, 1])
+    np.testing.assert_allclose(sol.events.u_plus[:count, 1], -e * v_in, rtol=1e-12)
+    np.testing.assert_allclose(sol.events.u_plus[:count, 0], 0.4, rtol=1e-12)
+    # apex k: e^{2k} h₀; impulse m (1 + e) |v|
+    apexes = np.asarray(sol.events.u_plus[:count, 1]) ** 2 / (2 * G)
+    np.testing.assert_allclose(apexes, e ** (2 * np.arange(1, count + 1)) * h0, rtol=1e-9)
+    np.testing.assert_allclose(sol.events.impulses[:count, 0], -0.7 * (1 + e) * v_in,
+                               rtol=1e-12)
+    np.testing.assert_allclose(sol.events.guard_rates[:count, 0], v_in, rtol=1e-12)
+    assert float(sol.q[-1, 1]) > 0  # never below the ground
+
+
+def test_ball_saved_states_follow_the_bounces():
+    """States saved at ts between impacts: the parabola of each flight."""
+    e, h0 = 0.8, 1.0
+    ts = jnp.linspace(0.0, 3.0, 61)
+    sol = _bounces(e, h0, ts=ts)
+    impacts = _impact_times(e, h0, 7)
+    v = G * impacts[0] * e ** np.arange(0, 7)  # launch speed after impact k (k ≥ 1)
+    expected = []
+    for t in np.asarray(ts):
+        k = np.searchsorted(impacts, t)  # flights before t
+        if k == 0:
+            expected.append(h0 - 0.5 * G * t**2)
+        else:
+            s = t - impacts[k - 1]
+            expected.append(v[k] * s - 0.5 * G * s**2)
+    np.testing.assert_allclose(sol.q[:, 1], expected, atol=1e-9)
+    np.testing.assert_allclose(sol.q[:, 0], 0.4 * np.asarray(ts), rtol=1e-12)
+
+
+def _third_impact(e, h0, adjoint=None):
+    return _bounces(e, h0, adjoint=adjoint, max_events=4, t1=2.0).events.t[2]
+
+
+def _third_impact_closed(e, h0):
+    first = jnp.sqrt(2 * h0 / G)
+    return first * (1 + 2 * e + 2 * e * e)
+
+
+@pytest.mark.parametrize("adjoint", [None, diffrax.RecursiveCheckpointAdjoint()],
+                         ids=["forward sensitivities", "reverse"])
+def test_ball_gradient_of_impact_time_in_e_and_h0(adjoint):
+    gradient = jax.grad(_third_impact, argnums=(0, 1))(0.8, 1.0, adjoint)
+    expected = jax.grad(_third_impact_closed, argnums=(0, 1))(0.8, 1.0)
+    np.testing.assert_allclose(gradient, expected, rtol=1e-8)
+
+
+def test_ball_forward_mode_across_impacts():
+    jacobian = jax.jacfwd(_third_impact, argnums=(0, 1))(0.8, 1.0)
+    expected = jax.grad(_third_impact_closed, argnums=(0, 1))(0.8, 1.0)
+    np.testing.assert_allclose(jacobian, expected, rtol=1e-8)
+
+
+def test_batch_members_with_different_event_counts():
+    """One compiled program; each member stops at its own number of events."""
+    def count(h0):
+        sol = jaxdyn.simulate(BALL, jnp.array([0.0, h0]), jnp.array([0.0, 0.0]),
+                              {"m": 1.0, "g": G, "e": 0.9}, t1=1.2, events=GROUND,
+                              max_events=12, **TOL)
+        return sol.events.count, sol.q[-1, 1]
+    h0s = np.array([0.1, 0.6, 3.0])
+    counts, heights = jax.jit(jax.vmap(count))(jnp.asarray(h0s))
+    expected = [int(np.sum(_impact_times(0.9, h, 40) <= 1.2)) for h in h0s]
+    np.testing.assert_array_equal(counts, expected)
+    assert np.all(np.asarray(heights) >= 0)
+
+
+def test_event_budget_is_reported():
+    with pytest.raises(Exception, match="max_events"):
+        _bounces(0.8, 1.0, max_events=2)
+    sol = jaxdyn.simulate(BALL, jnp.array([0.0, 1.0]), jnp.array([0.0, 0.0]),
+                          {"m": 1.0, "g": G, "e": 0.8}, t1=3.0, events=[GROUND],
+                          max_events=2, throw=False, **TOL)
+    assert sol.result == jaxdyn.RESULTS.max_events_reached
+    assert int(sol.events.count) == 2
+    # inside a caller's jit, reading only the record of events still raises
+    with pytest.raises(Exception, match="max_events"):
+        jax.jit(lambda h0: _bounces(0.8, h0, max_events=2).events.count)(1.0)
+
+
+# -- formulations: the same impact through each one's mass matrix and speeds -----------------
+
+def _tip_height(q, p):
+    return -p["l"][0] * jnp.cos(q[0]) - p["l"][1] * jnp.cos(q[1])
+
+
+def test_double_pendulum_tip_strikes_the_floor_newton_by_hand():
+    """The tip of a double pendulum of point masses strikes a floor at depth h: the jump of
+    the speeds is Newton's law with the textbook mass matrix and the tip's Jacobian,
+    J = (l₁ sin θ₁, l₂ sin θ₂)."""
+    p = dict(DOUBLE_PENDULUM.params, h=1.5, e=0.6)
+    floor = jaxdyn.UnilateralContact(
+        lambda q, p: p["h"] - p["l1"] * jnp.cos(q[0]) - p["l2"] * jnp.cos(q[1]),
+        restitution=lambda p: p["e"])
+    sol = jaxdyn.simulate(DOUBLE_PENDULUM.dynamics, jnp.array([1.4, 2.0]), jnp.zeros(2), p,
+                          t1=2.0, events=[floor], max_events=3, **TOL)
+    assert int(sol.events.count) >= 1
+    q = np.asarray(sol.events.q_minus[0])
+    u_minus = np.asarray(sol.events.u_minus[0])
+    assert abs(p["h"] - p["l1"] * np.cos(q[0]) - p["l2"] * np.cos(q[1])) < 1e-10
+    mass = DOUBLE_PENDULUM.mass_matrix(q, p)
+    jacobian = np.array([p["l1"] * np.sin(q[0]), p["l2"] * np.sin(q[1])])
+    approach = jacobian @ u_minus
+    assert approach < 0
+    impulse = -(1 + p["e"]) * approach / (jacobian @ np.linalg.solve(mass, jacobian))
+    u_plus = u_minus + np.linalg.solve(mass, jacobian) * impulse
+    np.testing.assert_allclose(sol.events.u_plus[0], u_plus, rtol=1e-10)
+    np.testing.assert_allclose(sol.events.impulses[0, 0], impulse, rtol=1e-10)
+    np.testing.assert_allclose(jacobian @ np.asarray(sol.events.u_plus[0]), -p["e"] * approach,
+                               rtol=1e-10)
+
+
+CHAIN = _chain(2)
+
+
+@pytest.mark.parametrize("formulation", ["Lagrange", "Kane", "Gibbs-Appell", "Kane, relative"])
+def test_formulations_agree_across_impacts(formulation):
+    """A chain of two rods whose tip strikes a floor, by Lagrange's equations, Kane's (in the
+    absolute angle rates, and in relative angle rates u = (θ̇₁, θ̇₂ − θ̇₁)) and Gibbs–Appell's:
+    the same impacts, and the same motion after them."""
+    system, p = CHAIN.system, dict(CHAIN.params, h=0.6 * float(np.sum(CHAIN.params["l"])))
+    floor = jaxdyn.UnilateralContact(lambda q, p: p["h"] + _tip_height(q, p), restitution=0.7)
+    u0 = jnp.zeros(2)
+    if formulation == "Lagrange":
+        dynamics = jaxdyn.Lagrangian.from_system(system)
+    elif formulation == "Kane":
+        dynamics = jaxdyn.Kane(system)
+    elif formulation == "Gibbs-Appell":
+        dynamics = jaxdyn.GibbsAppell.from_system(system)
+    else:
+        dynamics = jaxdyn.Kane(system, kinematic_map=lambda q, p: jnp.array([[1.0, 0.0],
+                                                                            [1.0, 1.0]]))
+    sol = jaxdyn.simulate(dynamics, jnp.array([1.2, 2.2]), u0, p, t1=1.5, events=[floor],
+                          max_events=4, ts=jnp.linspace(0.0, 1.5, 7), **TOL)
+    reference = _chain_reference(p)
+    count = int(reference.events.count)
+    assert count >= 2 and int(sol.events.count) == count
+    np.testing.assert_allclose(sol.events.t[:count], reference.events.t[:count], rtol=1e-9)
+    np.testing.assert_allclose(sol.q, reference.q, atol=1e-8)
+    np.testing.assert_allclose(sol.qd, reference.qd, atol=1e-7)
+
+
+_CHAIN_CACHE = {}
+
+
+def _chain_reference(p):
+    if "sol" not in _CHAIN_CACHE:
+        floor = jaxdyn.UnilateralContact(lambda q, p: p["h"] + _tip_height(q, p),
+                                         restitution=0.7)
+        _CHAIN_CACHE["sol"] = jaxdyn.simulate(
+            jaxdyn.Lagrangian.from_system(CHAIN.system), jnp.array([1.2, 2.2]), jnp.zeros(2),
+            p, t1=1.5, events=[floor], max_events=4, ts=jnp.linspace(0.0, 1.5, 7), **TOL)
+    return _CHAIN_CACHE["sol"]
+
+
+def test_constrained_formulation_impacts_within_its_constraints():
+    """A pendulum as a particle in Cartesian coordinates held by a rod (`Constrained`)
+    strikes a wall: the impact keeps the rod's constraint and matches the pendulum in its
+    angle (Lagrange's equations of one coordinate)."""
+    length, e = 1.3, 0.75
+    kinetic = lambda q, qd, p: 0.5 * jnp.sum(qd**2)
+    potential = lambda q, p: G * q[1]
+    rod = lambda q, p: jnp.array([q[0] ** 2 + q[1] ** 2 - length**2])
+    cartesian = jaxdyn.Constrained(jaxdyn.Lagrangian(kinetic, potential), holonomic=rod)
+    wall = jaxdyn.UnilateralContact(lambda q, p: q[0] + 0.3, restitution=e)  # x ≥ −0.3
+    theta0 = 1.1
+    q0 = jnp.array([length * np.sin(theta0), -length * np.cos(theta0)])
+    sol = jaxdyn.simulate(cartesian, q0, jnp.zeros(2), t1=3.0, events=[wall], max_events=3,
+                          **TOL)
+    angle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * length**2 * qd[0] ** 2,
+                              lambda q, p: -G * length * jnp.cos(q[0]))
+    wall_angle = jaxdyn.UnilateralContact(lambda q, p: length * jnp.sin(q[0]) + 0.3,
+                                          restitution=e)
+    reference = jaxdyn.simulate(angle, jnp.array([theta0]), jnp.zeros(1), t1=3.0,
+                                events=[wall_angle], max_events=3, **TOL)
+    count = int(reference.events.count)
+    assert count >= 2 and int(sol.events.count) == count
+    np.testing.assert_allclose(sol.events.t[:count], reference.events.t[:count], rtol=1e-8)
+    u_plus = np.asarray(sol.events.u_plus[:count])
+    q_minus = np.asarray(sol.events.q_minus[:count])
+    np.testing.assert_allclose(np.sum(q_minus * u_plus, axis=1), 0.0, atol=1e-9)  # on the rod
+    speed = np.linalg.norm(u_plus, axis=1)
+    np.testing.assert_allclose(speed, length * np.abs(reference.events.u_plus[:count, 0]),
+                               rtol=1e-8)
+
+
+# -- simultaneous impacts: the complementarity problem ---------------------------------------
+
+def _rod_T(q, qd, p):  # a planar rod (x, y, θ), mass 1, length 1
+    return 0.5 * (qd[0] ** 2 + qd[1] ** 2) + 0.5 / 12 * qd[2] ** 2
+
+
+def _rod_V(q, p):
+    return G * q[1]
+
+
+ROD = jaxdyn.Lagrangian(_rod_T, _rod_V)
+ROD_ENDS = jaxdyn.UnilateralContact(
+    lambda q, p: jnp.stack([q[1] - 0.5 * jnp.sin(q[2]), q[1] + 0.5 * jnp.sin(q[2])]),
+    restitution=0.5)
+
+
+def test_rod_landing_flat_hits_with_both_ends():
+    """Both ends strike at once: equal impulses, the centre's speed reverses with e, no spin
+    (a single-contact law applied to either end would set the rod spinning)."""
+    sol = jaxdyn.simulate(ROD, jnp.array([0.0, 1.0, 0.0]), jnp.array([0.2, 0.0, 0.0]),
+                          t1=0.6, events=[ROD_ENDS], max_events=2, **TOL)
+    v = -np.sqrt(2 * G * 1.0)
+    np.testing.assert_allclose(sol.events.t[0], np.sqrt(2 / G), rtol=1e-10)
+    np.testing.assert_allclose(sol.events.u_plus[0], [0.2, -0.5 * v, 0.0], atol=1e-9)
+    np.testing.assert_allclose(sol.events.impulses[0], [-0.75 * v, -0.75 * v], rtol=1e-8)
+
+
+def test_tilted_rod_one_end_pushes_the_other_separates():
+    """A tilted rod striking with its lower end while its upper end is (numerically) at the
+    floor too, moving away: the law gives no impulse at the separating end."""
+    theta, omega = 0.3, 2.0
+    q0 = jnp.array([0.0, 0.5 * np.sin(theta), theta])  # left end at the floor
+    u0 = jnp.array([0.0, -1.0, omega])
+    fired = jnp.array([True, False])
+    q_plus, u_plus, impulses = ROD_ENDS.jump(ROD, 0.0, q0, u0, None, fired)
+    # the left end (x − ½cos θ, y − ½ sin θ) has vertical speed ẏ − ½ cos θ θ̇
+    jac = np.array([0.0, 1.0, -0.5 * np.cos(theta)])
+    mass_inv = np.diag([1.0, 1.0, 12.0])
+    approach = jac @ np.asarray(u0)
+    impulse = -1.5 * approach / (jac @ mass_inv @ jac)
+    np.testing.assert_allclose(impulses, [impulse, 0.0], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(u_plus, np.asarray(u0) + mass_inv @ jac * impulse, rtol=1e-10)
+
+
+# -- a pendulum swinging into a wall: complete elliptic integrals ----------------------------
+
+def _pendulum_T(q, qd, p):
+    return 0.5 * p["l"] ** 2 * qd[0] ** 2
+
+
+def _pendulum_V(q, p):
+    return -G * p["l"] * jnp.cos(q[0])
+
+
+PENDULUM = jaxdyn.Lagrangian(_pendulum_T, _pendulum_V)
+WALL = jaxdyn.UnilateralContact(lambda q, p: -q[0], restitution=lambda p: p["e"])  # θ ≤ 0
+
+
+def test_pendulum_into_a_wall_elliptic_integrals():
+    """Released from θ₀ < 0, the pendulum reaches the wall at the vertical after a quarter
+    period K(sin²(θ₀/2))/ω; it rebounds with e times the speed to an amplitude θ₁ and returns
+    after half a period of that amplitude, 2K(sin²(θ₁/2))/ω."""
+    l, e, theta0 = 0.9, 0.7, -2.0
+    omega = np.sqrt(G / l)
+    sol = jaxdyn.simulate(PENDULUM, jnp.array([theta0]), jnp.zeros(1), {"l": l, "e": e},
+                          t1=2.5, events=[WALL], max_events=3, **TOL)
+    t1 = scipy.special.ellipk(np.sin(theta0 / 2) ** 2) / omega
+    speed = 2 * omega * np.sin(-theta0 / 2)  # θ̇ at the bottom
+    theta1 = 2 * np.arcsin(e * speed / (2 * omega))
+    t2 = t1 + 2 * scipy.special.ellipk(np.sin(theta1 / 2) ** 2) / omega
+    np.testing.assert_allclose(sol.events.t[:2], [t1, t2], rtol=1e-9)
+    np.testing.assert_allclose(sol.events.u_minus[0, 0], speed, rtol=1e-9)
+
+
+def _scipy_wall(e, theta0, l, t_end):
+    """An independent reference: SciPy's `solve_ivp` with a terminal event, restarted by hand
+    after each impact (θ̇ → −e θ̇)."""
+    def f(t, y):
+        return [y[1], -G / l * np.sin(y[0])]
+
+    def hit(t, y):
+        return -y[0]
+    hit.terminal, hit.direction = True, -1
+    t, y = 0.0, np.array([theta0, 0.0])
+    while True:
+        out = scipy.integrate.solve_ivp(f, (t, t_end), y, method="DOP853", rtol=1e-13,
+                                        atol=1e-13, events=hit)
+        if out.status != 1:
+            return out.y[:, -1]
+        t, y = out.t_events[0][0], out.y_events[0][0].copy()
+        y[0], y[1] = 0.0, -e * y[1]
+        t += 1e-14  # leave the wall (the event is located at θ = 0)
+
+
+def test_gradient_through_impacts_against_scipy_finite_differences():
+    """d(θ, θ̇)(t_end)/d(e, θ₀, l) after two impacts, by `jax.jacrev` (reverse mode through
+    the restarted solve) against central differences of SciPy's event-located solve."""
+    t_end = 2.6
+
+    def final(x):
+        e, theta0, l = x
+        sol = jaxdyn.simulate(PENDULUM, jnp.stack([theta0]), jnp.zeros(1), {"l": l, "e": e},
+                              t1=t_end, events=[WALL], max_events=4,
+                              adjoint=diffrax.RecursiveCheckpointAdjoint(), **TOL)
+        return jnp.concatenate([sol.q[-1], sol.u[-1]])
+
+    x = np.array([0.7, -2.0, 0.9])
+    count = int(jaxdyn.simulate(PENDULUM, jnp.array([-2.0]), jnp.zeros(1), {"l": 0.9,
+                                "e": 0.7}, t1=t_end, events=[WALL], max_events=4,
+                                **TOL).events.count)
+    assert count == 2
+    np.testing.assert_allclose(final(jnp.asarray(x)), _scipy_wall(*x, t_end), rtol=1e-8)
+    jacobian = jax.jacrev(final)(jnp.asarray(x))
+    reference = central_difference(lambda x: _scipy_wall(*x, t_end), x, step=1e-5)
+    np.testing.assert_allclose(jacobian, reference, rtol=1e-5, atol=1e-6)
+
+
+# -- events with a reset, and events that stop ----------------------------------------------
+
+def test_reset_wraps_the_angle_of_a_rotating_pendulum():
+    """θ is wrapped back by 2π each time it passes π: the motion is the unwrapped motion
+    modulo 2π, and the events fall where the unwrapped angle passes π + 2πk."""
+    wrap = jaxdyn.Event(lambda q, u, p: q[0] - np.pi, lambda q, u, p: (q - 2 * np.pi, u),
+                        direction="rising")
+    ts = jnp.linspace(0.0, 4.0, 41)
+    args = (PENDULUM, jnp.array([0.0]), jnp.array([8.0]), {"l": 1.0})
+    wrapped = jaxdyn.simulate(*args, t1=4.0, ts=ts, events=[wrap], max_events=8, **TOL)
+    free = jaxdyn.simulate(*args, t1=4.0, ts=ts, **TOL)
+    count = int(wrapped.events.count)
+    assert count >= 3
+    unwrapped = np.asarray(free.q[:, 0])
+    np.testing.assert_allclose(np.asarray(wrapped.q[:, 0]),
+                               np.mod(unwrapped + np.pi, 2 * np.pi) - np.pi, atol=1e-8)
+    dense = jaxdyn.simulate(*args, t1=4.0, dense=True, **TOL)
+    crossing = [dense.evaluate(t)[0][0] for t in np.asarray(wrapped.events.t[:count])]
+    np.testing.assert_allclose(crossing, np.pi + 2 * np.pi * np.arange(count), atol=1e-8)
+
+
+def test_stop_event_ends_the_motion():
+    """A ball thrown up stops when it first falls back through its launch height: at
+    t = 2 v₀ / g, and nothing is saved after it."""
+    stop = jaxdyn.Event(lambda q, u, p: q[1] - 1.0)
+    ts = jnp.linspace(0.0, 2.0, 21)
+    sol = jaxdyn.simulate(BALL, jnp.array([0.0, 1.0]), jnp.array([0.0, 3.0]),
+                          {"m": 1.0, "g": G}, t1=2.0, ts=ts, events=[stop], **TOL)
+    t_stop = 2 * 3.0 / G
+    assert int(sol.events.count) == 1
+    np.testing.assert_allclose(sol.events.t[0], t_stop, rtol=1e-11)
+    before = np.asarray(ts) <= t_stop
+    np.testing.assert_allclose(sol.q[before, 1], 1.0 + 3.0 * ts[before] - 0.5 * G * ts[before]
+                               ** 2, atol=1e-10)
+    assert np.all(np.isnan(np.asarray(sol.q[~before])))
+
+
+# -- bad input -------------------------------------------------------------------------------
+
+def test_bad_events_are_named():
+    args = (BALL, jnp.array([0.0, 1.0]), jnp.zeros(2), {"m": 1.0, "g": G, "e": 0.5})
+    with pytest.raises(ValueError, match="direction"):
+        jaxdyn.Event(lambda q, u, p: q[1], direction="down")
+    with pytest.raises(ValueError, match="events must be jaxdyn events"):
+        jaxdyn.simulate(*args, t1=1.0, events=[lambda q, u, p: q[1]])
+    with pytest.raises(ValueError, match="max_events"):
+        jaxdyn.simulate(*args, t1=1.0, events=[GROUND], max_events=0)
+    with pytest.raises(ValueError, match="dense"):
+        jaxdyn.simulate(*args, t1=1.0, events=[GROUND], dense=True)
+    matrix = jaxdyn.UnilateralContact(lambda q, p: jnp.outer(q, q))
+    with pytest.raises(ValueError, match="scalar or a vector"):
+        jaxdyn.simulate(*args, t1=1.0, events=[matrix])
+    with pytest.raises(ValueError, match="restitution"):
+        jaxdyn.simulate(*args, t1=1.0, events=[jaxdyn.UnilateralContact(
+            lambda q, p: q[1], restitution=jnp.array([0.5, 0.5]))])
