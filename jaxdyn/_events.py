@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from ._convention import call, vector
+from ._dynamics import formed_equations
 
 #: The directions of a crossing that trigger an event: from positive to negative (a gap
 #: closing), from negative to positive, or both.
@@ -30,7 +31,10 @@ class AbstractEvent(eqx.Module):
     """Guards whose zero crossings interrupt the motion, and what happens then.
 
     Subclasses give `guards` (k values, each one event), `direction` (which crossings count)
-    and `jump`; `terminal` events stop the motion instead of jumping.
+    and `jump`; `terminal` events stop the motion instead of jumping. A guard may also come
+    to rest (a contact that stays closed): its `contact_rows` then hold it at zero as a
+    constraint J u̇ + b = 0 with a multiplier λ ≥ 0, which takes the guard's place, so that
+    the contact is released when λ falls through zero.
     """
 
     direction: eqx.AbstractVar[str]
@@ -41,9 +45,13 @@ class AbstractEvent(eqx.Module):
         """The guard values g(t, q, u, p), shape (k,): an event where one crosses zero."""
 
     @abc.abstractmethod
-    def jump(self, dynamics, t, q, u, p, fired) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """(q⁺, u⁺, impulses (k,)) from the state (q, u) at which the guards `fired` (k
-        booleans) crossed zero."""
+    def jump(self, dynamics, t, q, u, p, fired, resting):
+        """(q⁺, u⁺, impulses (k,), resting⁺ (k,)) from the state (q, u) at which the guards
+        `fired` (k booleans) crossed zero, those `resting` being held as constraints."""
+
+    @abc.abstractmethod
+    def contact_rows(self, dynamics, t, q, u, p):
+        """None, or (J (k, m), b (k,)) such that a guard at rest is held by J u̇ + b = 0."""
 
 
 class Event(AbstractEvent):
@@ -87,17 +95,38 @@ class Event(AbstractEvent):
         value = call(self.guard, "guard g", self.time_dependent, ("q", "u", "p"), t, q, u, p)
         return as_guards(value, "guard g")
 
-    def jump(self, dynamics, t, q, u, p, fired):
+    def contact_rows(self, dynamics, t, q, u, p):
+        return None
+
+    def jump(self, dynamics, t, q, u, p, fired, resting):
         k = fired.shape[0]
         if self.reset is None:
-            return q, u, jnp.zeros((k,), q.dtype)
+            return q, u, jnp.zeros((k,), q.dtype), resting
         value = call(self.reset, "reset Δ", self.time_dependent, ("q", "u", "p"), t, q, u, p)
         if not (isinstance(value, tuple | list) and len(value) == 2):
             raise ValueError("The reset Δ must return a pair (q⁺, u⁺), got "
                              f"{type(value).__name__}.")
         q_plus = vector(value[0], "reset Δ's q⁺", q.shape)
         u_plus = vector(value[1], "reset Δ's u⁺", u.shape)
-        return q_plus.astype(q.dtype), u_plus.astype(u.dtype), jnp.zeros((k,), q.dtype)
+        return (q_plus.astype(q.dtype), u_plus.astype(u.dtype), jnp.zeros((k,), q.dtype),
+                resting)
+
+
+def constraint_response(dynamics, t, q, u, p, jacobian):
+    """X, shape (m, k): the change of the speeds per unit impulse (or of the accelerations
+    per unit force) along each row of `jacobian`, M X = Jᵀ, within the velocity constraints
+    A u = b of a constrained formulation (their multipliers solved with it: [M Aᵀ; A 0]),
+    with M the formulation's own mass matrix in its own speeds."""
+    mass_matrix = formed_equations(dynamics, t, q, u, p)[0]
+    _, velocity_constraints = dynamics.state_constraints(t, q, u, p)
+    m, k = u.shape[0], jacobian.shape[0]
+    if velocity_constraints.shape[0] == 0:
+        return jnp.linalg.solve(mass_matrix, jacobian.T)
+    a = jax.jacfwd(lambda u: dynamics.state_constraints(t, q, u, p)[1])(u)
+    c = a.shape[0]
+    kkt = jnp.block([[mass_matrix, a.T], [a, jnp.zeros((c, c), a.dtype)]])
+    rhs = jnp.concatenate([jacobian.T, jnp.zeros((c, k), a.dtype)])
+    return jnp.linalg.solve(kkt, rhs)[:m]
 
 
 def check_direction(direction):

@@ -138,6 +138,69 @@ def test_event_budget_is_reported():
         jax.jit(lambda h0: _bounces(0.8, h0, max_events=2).events.count)(1.0)
 
 
+def test_zeno_ball_comes_to_rest_at_the_accumulation_time():
+    """Impacts with e < 1 accumulate at t∞ = t₁ (1 + e)/(1 − e); the contact then rests
+    (held by its normal force m g) and the ball slides on at its horizontal speed."""
+    e = 0.5
+    sol = jaxdyn.simulate(BALL, jnp.array([0.0, 1.0]), jnp.array([0.4, 0.0]),
+                          {"m": 0.7, "g": G, "e": e}, t1=3.0, ts=jnp.array([2.0, 3.0]),
+                          events=[GROUND], max_events=40, **TOL)
+    count = int(sol.events.count)
+    t_inf = np.sqrt(2 / G) * (1 + e) / (1 - e)
+    assert bool(sol.events.resting[count - 1, 0]) and not np.any(sol.events.resting[:count - 1])
+    # the rest begins within rest_within / (1 − e) of the accumulation time
+    assert t_inf - 3e-5 < float(sol.events.t[count - 1]) <= t_inf
+    np.testing.assert_allclose(sol.q[:, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(sol.u[:, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(sol.q[:, 0], 0.4 * np.array([2.0, 3.0]), rtol=1e-10)
+
+
+def test_resting_contact_released_when_its_normal_force_vanishes():
+    """A body at rest on the floor, pulled up by a force k t growing in time: the normal force
+    m g − k t falls through zero at t_r = m g / k, where the contact is released; then
+    y = k (t − t_r)³ / (6 m)."""
+    k = 4.0
+    lifted = jaxdyn.Lagrangian(lambda t, q, qd, p: 0.5 * jnp.sum(qd**2),
+                               lambda t, q, p: G * q[0] - k * t * q[0], time_dependent=True)
+    floor = jaxdyn.UnilateralContact(lambda t, q, p: q[0], time_dependent=True)
+    ts = jnp.linspace(0.0, 3.5, 8)
+    sol = jaxdyn.simulate(lifted, jnp.array([0.0]), jnp.array([0.0]), t1=3.5, ts=ts,
+                          events=[floor], max_events=4, **TOL)
+    t_release = G / k
+    assert int(sol.events.count) == 2  # met at rest at t = 0, released at t_r
+    np.testing.assert_array_equal(sol.events.resting[:2, 0], [True, False])
+    np.testing.assert_allclose(sol.events.t[:2], [0.0, t_release], atol=1e-10)
+    expected = np.where(ts > t_release, k / 6 * (ts - t_release) ** 3, 0.0)
+    np.testing.assert_allclose(sol.q[:, 0], expected, atol=1e-9)
+
+
+def test_fit_recovers_restitution_and_drop_height():
+    """`jaxdyn.fit` with events: e and h₀ from noisy heights of a ball bouncing into rest
+    (the data from the closed form)."""
+    e, h0 = 0.75, 1.2
+    ts = np.linspace(0.0, 2.5, 126)
+    impacts = _impact_times(e, h0, 40)
+    launch = G * impacts[0] * e ** np.arange(0, 40)
+    heights = []
+    for t in ts:
+        k = np.searchsorted(impacts, t)
+        s = t - (impacts[k - 1] if k else 0.0)
+        heights.append(h0 - 0.5 * G * t**2 if k == 0 else max(launch[k] * s - 0.5 * G * s**2,
+                                                                0.0))
+    noisy = np.array(heights) + 1e-3 * np.random.default_rng(0).standard_normal(ts.shape)
+    vertical = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * jnp.sum(qd**2),
+                                 lambda q, p: G * q[0])
+    floor = jaxdyn.UnilateralContact(lambda q, p: q[0], restitution=lambda p: p["e"])
+    experiment = jaxdyn.Experiment(ts=jnp.asarray(ts), observations=jnp.asarray(noisy),
+                                   q0=jnp.array([1.0]), u0=jnp.array([0.0]))
+    result = jaxdyn.fit(vertical, experiment, {"e": 0.6}, fit_initial_states=True,
+                        simulate_options={"events": [floor], "max_events": 40, **TOL},
+                        progress=False)
+    assert result.converged
+    np.testing.assert_allclose(result.params["e"], e, atol=5 * result.standard_errors["e"])
+    np.testing.assert_allclose(np.ravel(result.initial_states[0][0])[0], h0, atol=2e-3)
+
+
 # -- formulations: the same impact through each one's mass matrix and speeds -----------------
 
 def _tip_height(q, p):
@@ -271,21 +334,21 @@ def test_rod_landing_flat_hits_with_both_ends():
     np.testing.assert_allclose(sol.events.impulses[0], [-0.75 * v, -0.75 * v], rtol=1e-8)
 
 
-def test_tilted_rod_one_end_pushes_the_other_separates():
-    """A tilted rod striking with its lower end while its upper end is (numerically) at the
-    floor too, moving away: the law gives no impulse at the separating end."""
-    theta, omega = 0.3, 2.0
-    q0 = jnp.array([0.0, 0.5 * np.sin(theta), theta])  # left end at the floor
-    u0 = jnp.array([0.0, -1.0, omega])
-    fired = jnp.array([True, False])
-    q_plus, u_plus, impulses = ROD_ENDS.jump(ROD, 0.0, q0, u0, None, fired)
-    # the left end (x − ½cos θ, y − ½ sin θ) has vertical speed ẏ − ½ cos θ θ̇
-    jac = np.array([0.0, 1.0, -0.5 * np.cos(theta)])
-    mass_inv = np.diag([1.0, 1.0, 12.0])
-    approach = jac @ np.asarray(u0)
-    impulse = -1.5 * approach / (jac @ mass_inv @ jac)
-    np.testing.assert_allclose(impulses, [impulse, 0.0], rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(u_plus, np.asarray(u0) + mass_inv @ jac * impulse, rtol=1e-10)
+def test_spinning_rod_both_ends_push_though_one_separates():
+    """A flat rod at the floor, falling (ẏ = −1) and spinning (θ̇ = 4): its left end approaches
+    at −3, its right end separates at +1. Newton's law at the left end alone would drive the
+    right end into the floor (at −1.25), so both ends push: G Λ = −c with the Delassus matrix
+    G = [[4, −2], [−2, 4]] and c = ((1 + e)(−3), +1), Λ = (4/3, 5/12) ≥ 0."""
+    q0, u0 = jnp.array([0.0, 0.0, 0.0]), jnp.array([0.0, -1.0, 4.0])
+    fired, resting = jnp.array([True, False]), jnp.array([False, False])
+    _, u_plus, impulses, rest = ROD_ENDS.jump(ROD, 0.0, q0, u0, None, fired, resting)
+    np.testing.assert_allclose(impulses, [4 / 3, 5 / 12], rtol=1e-12)
+    ends = np.array([[0.0, 1.0, -0.5], [0.0, 1.0, 0.5]])
+    expected = np.asarray(u0) + np.diag([1.0, 1.0, 12.0]) @ ends.T @ np.array([4 / 3, 5 / 12])
+    np.testing.assert_allclose(u_plus, expected, rtol=1e-12)
+    np.testing.assert_allclose(ends @ np.asarray(u_plus), [1.5, 0.0], atol=1e-12)
+    # the right end, now still and pulled down, rests
+    np.testing.assert_array_equal(rest, [False, True])
 
 
 # -- a pendulum swinging into a wall: complete elliptic integrals ----------------------------

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._convention import CONFIGURATION_ARGS, call
-from .._dynamics import formed_equations
-from .._events import AbstractEvent, as_guards
+from .._dynamics import equations_of_motion
+from .._events import AbstractEvent, as_guards, constraint_response
 
 #: The most contacts that may close at one instant: the impact law's complementarity problem
 #: is solved by enumerating the 2^k sets of contacts that push (exact, and differentiable
@@ -37,7 +37,7 @@ class UnilateralContact(AbstractEvent):
 
     which for one contact is $\dot φ^+ = -e\,\dot φ^-$ and for several simultaneous contacts a
     small linear complementarity problem, solved exactly (up to `MAX_SIMULTANEOUS` closed
-    contacts).
+    contacts); a closed contact that is not approaching takes e = 0 ($\dot φ^+ \ge 0$).
 
     **Arguments:**
 
@@ -46,6 +46,10 @@ class UnilateralContact(AbstractEvent):
     - `restitution`: the coefficient of restitution e ∈ [0, 1], a number, an array (k,), or
       a function e(p) of the parameters (so that it can be fitted or differentiated).
     - `closed_within`: gaps at most this are closed at an impact (simultaneous contacts).
+    - `rest_within`: a contact whose next flight would last less than this (in time units)
+      comes to rest: a Zeno sequence of impacts, whose flights shrink geometrically, ends in
+      resting contact. The contact is then held closed by its normal force λ ≥ 0 (recorded
+      in place of the guard), and released by another event when λ falls through zero.
 
     **Example:**
 
@@ -62,6 +66,7 @@ class UnilateralContact(AbstractEvent):
     gap: Callable
     restitution: float | jax.Array | Callable = 0.0
     closed_within: float = eqx.field(default=1e-9, static=True)
+    rest_within: float = eqx.field(default=1e-5, static=True)
     time_dependent: bool = eqx.field(default=False, static=True)
 
     @property
@@ -98,7 +103,23 @@ class UnilateralContact(AbstractEvent):
 
         return rates(u), jax.jacfwd(rates)(u)
 
-    def jump(self, dynamics, t, q, u, p, fired):
+    def contact_rows(self, dynamics, t, q, u, p):
+        """(J, b) with φ̈ = J u̇ + b: a resting contact is held by φ̈ = 0."""
+        def rates(t, q, u):
+            return self.normal_speeds(dynamics, t, q, u, p)[0]
+
+        q_dot = dynamics.coordinate_rates(t, q, u, p)
+        dt = jnp.ones_like(t) if self.time_dependent else jnp.zeros_like(t)
+        bias = jax.jvp(rates, (t, q, u), (dt, q_dot, jnp.zeros_like(u)))[1]
+        return self.normal_speeds(dynamics, t, q, u, p)[1], bias
+
+    def jump(self, dynamics, t, q, u, p, fired, resting):
+        """Newton's law on the contacts closed at the instant; a fired contact that was
+        resting is released instead (its normal force fell through zero). Contacts whose
+        next flight would last less than `rest_within` come to rest: their impact is
+        perfectly plastic (e = 0) and they are held closed from then on, so that a Zeno
+        sequence of impacts (a ball bouncing with e < 1, whose impacts accumulate at a finite
+        time) ends in resting contact after finitely many events."""
         k = fired.shape[0]
         if k > MAX_SIMULTANEOUS:
             raise ValueError(
@@ -106,29 +127,31 @@ class UnilateralContact(AbstractEvent):
                 f"contacts that push, up to {MAX_SIMULTANEOUS} gaps per contact. Split the "
                 "gaps into several UnilateralContacts (contacts that cannot close at the "
                 "same instant), or use a compliant contact.")
-        closed = fired | (self.gaps(t, q, p) <= self.closed_within)
+        closed = fired | resting | (self.gaps(t, q, p) <= self.closed_within)
         speed, jacobian = self.normal_speeds(dynamics, t, q, u, p)
         restitution = self.coefficients(p, k, speed.dtype)
-        response = impulse_response(dynamics, t, q, u, p, jacobian)
+        response = constraint_response(dynamics, t, q, u, p, jacobian)
         delassus = jacobian @ response
-        impulses = newton_impulses(delassus, (1 + restitution) * speed, closed)
-        return q, u + response @ impulses, impulses
-
-
-def impulse_response(dynamics, t, q, u, p, jacobian):
-    """X = ∂u⁺/∂Λ, shape (m, k): the change of the speeds per unit impulse along each row of
-    `jacobian`, M X = Jᵀ, within the velocity constraints A u = b of a constrained
-    formulation (their impulsive multipliers solved together: [M Aᵀ; A 0])."""
-    mass_matrix = formed_equations(dynamics, t, q, u, p)[0]
-    _, velocity_constraints = dynamics.state_constraints(t, q, u, p)
-    m, k = u.shape[0], jacobian.shape[0]
-    if velocity_constraints.shape[0] == 0:
-        return jnp.linalg.solve(mass_matrix, jacobian.T)
-    a = jax.jacfwd(lambda u: dynamics.state_constraints(t, q, u, p)[1])(u)
-    c = a.shape[0]
-    kkt = jnp.block([[mass_matrix, a.T], [a, jnp.zeros((c, c), a.dtype)]])
-    rhs = jnp.concatenate([jacobian.T, jnp.zeros((c, k), a.dtype)])
-    return jnp.linalg.solve(kkt, rhs)[:m]
+        # Newton's law on the approaching contacts; contacts closed but separating or at
+        # rest only may not penetrate (e = 0: φ̇⁺ ≥ 0), as Glocker's law applied to them
+        # would let them move into the obstacle at −e φ̇⁻.
+        approaching = speed < 0
+        bounced = u + response @ newton_impulses(
+            delassus, jnp.where(approaching, 1 + restitution, 1.0) * speed, closed)
+        # the flight each contact would now make: 2 φ̇⁺ / |φ̈| under the free motion
+        _, accelerations, _, _ = equations_of_motion(dynamics, t, q, bounced, p)
+        rows, bias = self.contact_rows(dynamics, t, q, bounced, p)
+        normal_acceleration = rows @ accelerations + bias
+        separation = jacobian @ (bounced - u) + speed
+        flight = 2 * jnp.maximum(separation, 0.0) / jnp.maximum(-normal_acceleration,
+                                                                  jnp.finfo(u.dtype).tiny)
+        rest = closed & (normal_acceleration < 0) & (flight <= self.rest_within)
+        impulses = newton_impulses(
+            delassus, jnp.where(approaching & ~rest, 1 + restitution, 1.0) * speed, closed)
+        impact = jnp.any(fired & ~resting)
+        u_plus = jnp.where(impact, u + response @ impulses, u)
+        impulses = jnp.where(impact, impulses, 0.0)
+        return q, u_plus, impulses, jnp.where(impact, rest, resting & ~fired)
 
 
 def newton_impulses(delassus, free, closed):

@@ -15,15 +15,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._dynamics import equations_of_motion
-from .._events import DIRECTIONS, AbstractEvent
+from .._events import DIRECTIONS, AbstractEvent, constraint_response
 from .._solution import RESULTS
-from .solve import vector_field
 
 #: Default budget of events per solve (`simulate(..., max_events=...)`).
-MAX_EVENTS = 16
+MAX_EVENTS = 64
+#: A guard within this of zero at the start of a segment is taken to be just before its
+#: crossing (a contact closed at the start is met at once rather than passed through).
+AT_ZERO = 1e-9
 
 
 class EventRecord(eqx.Module):
@@ -40,6 +42,8 @@ class EventRecord(eqx.Module):
       approach speeds. A crossing with ġ near zero (grazing) has an event time whose
       derivative is unbounded.
     - `impulses`: the impulses Λ of impacts, per guard (zero for other events), shape (E, K).
+    - `resting`: which guards are held at rest after the event (a contact come to rest),
+      shape (E, K).
     - `count`: the number of events that happened, a scalar.
     """
 
@@ -51,6 +55,7 @@ class EventRecord(eqx.Module):
     u_plus: Float[Array, "E m"]
     guard_rates: Float[Array, "E K"]
     impulses: Float[Array, "E K"]
+    resting: Bool[Array, "E K"]
     count: Int[Array, ""]
 
 
@@ -84,16 +89,72 @@ def _guard_counts(events, dynamics, t, q, u, p):
             for e in events]
 
 
-def _guard_values(events, dynamics, t, q, u, p):
+def _guards(events, dynamics, t, q, u, p):
     return jnp.concatenate([e.guards(dynamics, t, q, u, p) for e in events])
 
 
-def _guard_rates(events, dynamics, t, q, u, p, factorisation):
-    """ġ of every guard along the motion at (t, q, u): one JVP along (1, q̇, u̇)."""
-    rates, accelerations, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
-    rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
-    return jax.jvp(lambda t, q, u: _guard_values(events, dynamics, t, q, u, p),
-                   (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
+class _Hybrid(eqx.Module):
+    """The events of a solve and how their guards are laid out: the vector field with the
+    resting contacts held, and the guards with their multipliers in place of those held."""
+
+    events: tuple
+    counts: tuple[int, ...] = eqx.field(static=True)
+
+    def rows(self, dynamics, t, q, u, p):
+        """(J, b) of every guard, zero rows for guards that cannot rest; None if none can."""
+        rows = [e.contact_rows(dynamics, t, q, u, p) for e in self.events]
+        if all(r is None for r in rows):
+            return None
+        m = u.shape[0]
+        full = [r if r is not None else (jnp.zeros((c, m), u.dtype), jnp.zeros((c,), u.dtype))
+                for r, c in zip(rows, self.counts)]
+        return (jnp.concatenate([r[0] for r in full]), jnp.concatenate([r[1] for r in full]))
+
+    def accelerations(self, dynamics, t, q, u, p, factorisation, resting):
+        """(q̇, u̇, λ): the equations of motion with the `resting` guards held at zero by
+        J u̇ + b = 0 and their multipliers λ (zero for the others)."""
+        rates, free, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+        zero = jnp.zeros(resting.shape, u.dtype)
+        rows = self.rows(dynamics, t, q, u, p)
+        if rows is None:
+            return rates, free, zero
+
+        def held():
+            jacobian, bias = rows
+            response = constraint_response(dynamics, t, q, u, p, jacobian)
+            both = resting[:, None] & resting[None, :]
+            delassus = jnp.where(both, jacobian @ response, jnp.eye(resting.shape[0],
+                                                                   dtype=u.dtype))
+            forces = jnp.where(resting, jnp.linalg.solve(
+                delassus, jnp.where(resting, -(jacobian @ free + bias), 0.0)), 0.0)
+            return free + response @ forces, forces
+
+        accelerations, forces = jax.lax.cond(jnp.any(resting), held, lambda: (free, zero))
+        return rates, accelerations, forces
+
+    def values(self, dynamics, t, q, u, p, factorisation, resting):
+        """The guards, with the multiplier λ_i in place of each guard held at rest."""
+        guards = _guards(self.events, dynamics, t, q, u, p)
+        if self.rows(dynamics, t, q, u, p) is None:
+            return guards
+        _, _, forces = self.accelerations(dynamics, t, q, u, p, factorisation, resting)
+        return jnp.where(resting, forces, guards)
+
+    def field(self, t, y, args):
+        dynamics, p, factorisation, layout, (_, _, resting) = args
+        q, u = layout.split(y)
+        rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
+                                                     resting)
+        return layout.join(rates, accelerations)
+
+    def rates(self, dynamics, t, q, u, p, factorisation, resting):
+        """ġ of the guards (as they are, not their multipliers) along the motion at (t, q, u):
+        one JVP along (1, q̇, u̇)."""
+        rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
+                                                     resting)
+        rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
+        return jax.jvp(lambda t, q, u: _guards(self.events, dynamics, t, q, u, p),
+                       (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
 
 
 def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
@@ -105,6 +166,7 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     dynamics, p, factorisation, layout = args
     q0, u0 = layout.split(y0)
     counts = _guard_counts(events, dynamics, t0, q0, u0, p)
+    hybrid = _Hybrid(events, tuple(counts))
     total = sum(counts)
     owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
     owner = jnp.asarray(owner_list, jnp.int32)
@@ -112,39 +174,43 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     dtype = y0.dtype
     tiny = jnp.finfo(dtype).tiny
 
-    def condition(index, direction):
+    directions = [DIRECTIONS[event.direction] for event, c in zip(events, counts)
+                  for _ in range(c)]
+
+    def condition(index):
         def cond_fn(t, y, args, **kwargs):
-            dynamics, p, _, _, (t_start, leaving) = args
+            dynamics, p, factorisation, _, (t_start, leaving, resting) = args
             q, u = layout.split(y)
-            g = _guard_values(events, dynamics, t, q, u, p)[index]
+            g = hybrid.values(dynamics, t, q, u, p, factorisation, resting)[index]
+            at_start = t == t_start
             # At a restart the guards that just fired sit at zero: their side is the one the
             # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
             # handled is not found again.
             side = leaving[index] * jnp.maximum(jnp.abs(g), tiny)
-            return jnp.where((t == t_start) & (leaving[index] != 0), side, g)
+            # Any other guard at zero when a segment starts (a ball released on the floor)
+            # counts as just before its crossing, so that it cannot be passed unseen.
+            if directions[index] is False:
+                g = jnp.where(at_start & (g <= 0) & (g >= -AT_ZERO), tiny, g)
+            elif directions[index] is True:
+                g = jnp.where(at_start & (g >= 0) & (g <= AT_ZERO), -tiny, g)
+            return jnp.where(at_start & (leaving[index] != 0), side, g)
         return cond_fn
 
-    conds, directions = [], []
-    for event, count in zip(events, counts):
-        for _ in range(count):
-            conds.append(condition(len(conds), event.direction))
-            directions.append(DIRECTIONS[event.direction])
     root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
                               atol=1e-12 if dtype == jnp.float64 else 1e-6)
-    event = diffrax.Event(conds, root_finder, directions)
-
+    event = diffrax.Event([condition(i) for i in range(total)], root_finder, directions)
     ts_requested = requested.ts
 
     def segment(carry, index):
-        (t_start, y_start, leaving, done, saved, last, result, steps, count) = carry
+        (t_start, y_start, leaving, resting, done, saved, last, result, steps, count) = carry
         t_from = jnp.where(done, t1, t_start)
         if ts_requested is None:
             sub = diffrax.SubSaveAt(t1=True, fn=requested.fn)
         else:
             sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=requested.fn)
         solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field), solver, t_from, t1, dt0, y_start,
-            args=(*args, (t_from, leaving)),
+            diffrax.ODETerm(hybrid.field), solver, t_from, t1, dt0, y_start,
+            args=(*args, (t_from, leaving, resting)),
             saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
                                   controller_state=True),
             stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps,
@@ -169,28 +235,33 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
         q, u = layout.split(y_end)
         which = jnp.argmax(fired)
         fired_owner = owner[which]
-        guard_rates = _guard_rates(events, dynamics, t_end, q, u, p, factorisation)
+        guard_rates = hybrid.rates(dynamics, t_end, q, u, p, factorisation, resting)
 
         def jump(i):
             mine = np.array([k for k, o in enumerate(owner_list) if o == i])
 
             def apply():
-                q_plus, u_plus, impulses = events[i].jump(
-                    dynamics, t_end, q, u, p, fired[mine])
-                return q_plus, u_plus, jnp.zeros((total,), dtype).at[mine].set(impulses)
+                q_plus, u_plus, impulses, resting_plus = events[i].jump(
+                    dynamics, t_end, q, u, p, fired[mine], resting[mine])
+                return (q_plus, u_plus, jnp.zeros((total,), dtype).at[mine].set(impulses),
+                        resting.at[mine].set(resting_plus))
             return apply
 
         terminal = jnp.asarray([e.terminal for e in events])[fired_owner]
-        q_plus, u_plus, impulses = jax.lax.switch(fired_owner, [jump(i) for i in
-                                                                range(len(events))])
+        q_plus, u_plus, impulses, resting_plus = jax.lax.switch(
+            fired_owner, [jump(i) for i in range(len(events))])
         apply_jump = happened & ~terminal & (index < max_events)
         q_plus = jnp.where(apply_jump, q_plus, q)
         u_plus = jnp.where(apply_jump, u_plus, u)
         impulses = jnp.where(apply_jump, impulses, 0.0)
+        resting_plus = jnp.where(apply_jump, resting_plus, resting)
         y_next = layout.join(q_plus, u_plus)
-        # ġ just after the jump: which side each fired guard leaves towards.
-        rates_after = _guard_rates(events, dynamics, t_end, q_plus, u_plus, p, factorisation)
-        leaving_next = jnp.where(fired, jnp.sign(rates_after), 0.0).astype(dtype)
+        # ġ just after the jump: which side each fired guard leaves towards (none for a guard
+        # that came to rest or was released: it changes meaning there).
+        rates_after = hybrid.rates(dynamics, t_end, q_plus, u_plus, p, factorisation,
+                                   resting_plus)
+        same = resting_plus == resting
+        leaving_next = jnp.where(fired & same, jnp.sign(rates_after), 0.0).astype(dtype)
 
         segment_result = diffrax.RESULTS.where(
             solution.result == diffrax.RESULTS.event_occurred, diffrax.RESULTS.successful,
@@ -213,10 +284,12 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                   jnp.where(apply_jump, q_plus, jnp.nan),
                   jnp.where(apply_jump, u_plus, jnp.nan),
                   jnp.where(happened, guard_rates, jnp.nan),
-                  jnp.where(happened, impulses, jnp.nan))
+                  jnp.where(happened, impulses, jnp.nan),
+                  happened & resting_plus)
         count = count + (happened & (index < max_events)).astype(count.dtype)
         done = done | ~happened | terminal | failed | exhausted
-        carry = (t_end, y_next, leaving_next, done, saved, last, new_result, steps, count)
+        carry = (t_end, y_next, leaving_next, resting_plus, done, saved, last, new_result,
+                 steps, count)
         return carry, record
 
     if ts_requested is None:
@@ -227,18 +300,15 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     saved0 = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), saved0)
     if ts_requested is None:
         saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
-    stalled0 = jnp.array(False)
     zero = jnp.zeros((), jnp.int32)
-    carry0 = (t0, y0, jnp.zeros((total,), dtype), jnp.array(False), saved0,
-              (t0, y0, stalled0), RESULTS.successful, (zero, zero, zero), zero)
+    no_guards = jnp.zeros((total,), bool)
+    carry0 = (t0, y0, jnp.zeros((total,), dtype), no_guards, jnp.array(False), saved0,
+              (t0, y0, jnp.array(False)), RESULTS.successful, (zero, zero, zero), zero)
     carry, records = jax.lax.scan(segment, carry0, jnp.arange(max_events + 1))
-    (_, _, _, _, saved, (t_last, y_last, stalled), result, steps, count) = carry
+    (_, _, _, _, _, saved, (t_last, y_last, stalled), result, steps, count) = carry
     records = jax.tree_util.tree_map(lambda x: x[:max_events], records)
-    (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses) = records
-    if ts_requested is None:
-        ts_out = t_last[None]
-    else:
-        ts_out = ts_requested
+    (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses, resting) = records
+    ts_out = t_last[None] if ts_requested is None else ts_requested
     return HybridSolution(
         ts=(ts_out, t_last[None]),
         ys=(saved, y_last[None]),
@@ -248,4 +318,4 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                "num_rejected_steps": steps[2]},
         events=EventRecord(t=t_events, guard=guard, q_minus=q_minus, u_minus=u_minus,
                            q_plus=q_plus, u_plus=u_plus, guard_rates=rates,
-                           impulses=impulses, count=count))
+                           impulses=impulses, resting=resting, count=count))
