@@ -307,6 +307,32 @@ def test_constrained_formulation_impacts_within_its_constraints():
                                rtol=1e-8)
 
 
+def test_panda_end_stop_against_pinocchio_impulse_dynamics():
+    """The Panda arm (articulated-body formulation) strikes an end stop of its fourth joint:
+    the post-impact speeds and the impulse equal Pinocchio's `impulseDynamics` (which solves
+    the same impact law with its own CRBA)."""
+    pin = pytest.importorskip("pinocchio")
+    from robots import Robot, robot_file
+
+    robot = Robot.load(robot_file("panda.urdf"))
+    (q_pin, v_pin, _), (q, u, _) = robot.random_states(1, seed=3)
+    u = u[0].copy()
+    u[3] = abs(u[3]) + 0.5  # towards the stop
+    e = 0.4
+    stop = jaxdyn.UnilateralContact(lambda q, p: 2.5 - q[3], restitution=e)
+    arm = jaxdyn.ArticulatedBody(robot.tree)
+    _, u_plus, impulses, _ = stop.jump(arm, 0.0, jnp.asarray(q[0]), jnp.asarray(u), robot.p,
+                                       jnp.array([True]), jnp.array([False]))
+    row = np.zeros(u.shape[0])
+    row[3] = -1.0
+    v_plus = pin.impulseDynamics(robot.model, robot.data, q_pin[0], robot.permutation @ u,
+                                 (row @ robot.permutation.T)[None, :], e)
+    np.testing.assert_allclose(robot.permutation @ np.asarray(u_plus), v_plus, rtol=1e-10,
+                               atol=1e-12)
+    np.testing.assert_allclose(impulses, np.abs(robot.data.impulse_c), rtol=1e-10)
+    np.testing.assert_allclose(u_plus[3], -e * u[3], rtol=1e-12)
+
+
 # -- simultaneous impacts: the complementarity problem ---------------------------------------
 
 def _rod_T(q, qd, p):  # a planar rod (x, y, θ), mass 1, length 1
@@ -479,3 +505,37 @@ def test_bad_events_are_named():
     with pytest.raises(ValueError, match="restitution"):
         jaxdyn.simulate(*args, t1=1.0, events=[jaxdyn.UnilateralContact(
             lambda q, p: q[1], restitution=jnp.array([0.5, 0.5]))])
+
+
+# -- a hybrid limit cycle: the rimless wheel --------------------------------------------------
+
+def _rimless_wheel_step(omega, alpha, gamma):
+    """The rimless wheel's return map on its post-collision speed: the stance spoke (angle θ
+    from the vertical, an inverted pendulum of length 1) starts at θ = γ − α with θ̇ = ω and
+    swings until the next spoke strikes (θ = γ + α); the collision keeps the angular momentum
+    about the new contact: θ⁺ = θ − 2α, θ̇⁺ = cos(2α) θ̇."""
+    stance = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd[0] ** 2,
+                               lambda q, p: G * jnp.cos(q[0]))
+    strike = jaxdyn.Event(lambda q, u, p: p["gamma"] + p["alpha"] - q[0],
+                          lambda q, u, p: (q - 2 * p["alpha"], jnp.cos(2 * p["alpha"]) * u))
+    sol = jaxdyn.simulate(stance, jnp.stack([gamma - alpha]), jnp.stack([omega]),
+                          {"alpha": alpha, "gamma": gamma}, t1=3.0, events=[strike],
+                          max_events=1, throw=False, **TOL)
+    return sol.events.u_plus[0, 0]
+
+
+def test_rimless_wheel_limit_cycle_and_its_stability():
+    """Newton's method on the return map finds the limit cycle's speed
+    ω* = cot 2α √(4 g sin α sin γ) (McGeer 1990; Coleman 1998), and `jax.grad` of the map
+    there gives its Floquet multiplier cos² 2α."""
+    alpha, gamma = np.pi / 8, 0.08
+    step = lambda w: _rimless_wheel_step(w, alpha, gamma)
+    residual = jax.jit(jax.value_and_grad(lambda w: step(w) - w))
+    omega = 1.5
+    for _ in range(8):
+        value, slope = residual(omega)
+        omega = omega - float(value) / float(slope)
+    expected = np.sqrt(4 * G * np.sin(alpha) * np.sin(gamma)) / np.tan(2 * alpha)
+    np.testing.assert_allclose(omega, expected, rtol=1e-9)
+    multiplier = jax.grad(step)(omega)
+    np.testing.assert_allclose(multiplier, np.cos(2 * alpha) ** 2, rtol=1e-7)
