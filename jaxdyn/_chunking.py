@@ -12,8 +12,8 @@ chunks of 8, 9.9 µs one state at a time as XLA's runtime runs a loop, 1.6 µs o
 time with the loop compiled as one function (jaxdyn's default, `jaxdyn._xla`;
 `benchmarks/README.md`). Equations formed as whole
 matrices do not use it: LAPACK's batched factorisations prefer the whole batch. Derivatives
-pass through the rule (its JVP is the JVP of the chunked map), and nested `vmap`s batch the
-map.
+are those of the function itself, batched by plain `vmap` (a custom_vmap's own JVP cannot be
+linearised by JAX, see `chunked_vmap`), and nested `vmap`s batch the map.
 """
 
 from collections.abc import Callable
@@ -83,6 +83,19 @@ def chunked_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
                 lambda y: y.reshape((chunks * CHUNK,) + y.shape[2:])[:axis_size], out)
             return out, jax.tree_util.tree_map(lambda _: True, out)
 
-        return inner([leaves[i] for i in where])
+        # JAX linearises a custom_vmap function through its JVP and cannot split that into a
+        # known primal and a linear tangent ("Linearization failed to produce known values"):
+        # `jax.linearize`, and so reverse mode and Newton's method (an event's root find),
+        # failed on every tree's equations. The JVP is therefore that of the function itself
+        # (linearisable, batched by plain `vmap`); the primal keeps its chunked batching.
+        @jax.custom_jvp
+        def differentiable(arrays):
+            return inner(arrays)
+
+        @differentiable.defjvp
+        def derivative(primals, tangents):
+            return jax.jvp(evaluate, primals, tangents)
+
+        return differentiable([leaves[i] for i in where])
 
     return call

@@ -137,7 +137,11 @@ class _Hybrid(eqx.Module):
         guards = _guards(self.events, dynamics, t, q, u, p)
         if self.rows(dynamics, t, q, u, p) is None:
             return guards
-        _, _, forces = self.accelerations(dynamics, t, q, u, p, factorisation, resting)
+        # the equations are formed only while some guard rests (a real branch unless vmapped)
+        forces = jax.lax.cond(
+            jnp.any(resting),
+            lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting)[2],
+            lambda: jnp.zeros(resting.shape, u.dtype))
         return jnp.where(resting, forces, guards)
 
     def field(self, t, y, args):
@@ -215,6 +219,9 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                                   controller_state=True),
             stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps,
             event=event, throw=False)
+        # (saved as asked: the states and times, the controller's state, the event mask)
+        assert solution.ys is not None and solution.ts is not None
+        assert solution.event_mask is not None and solution.controller_state is not None
         ran = ~done
         fired = jnp.stack(solution.event_mask) & ran
         happened = jnp.any(fired)

@@ -314,7 +314,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
         result = RESULTS.where(nonfinite_input, RESULTS.nonfinite_state_or_parameters, result)
         q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
     ts_out = solution.ts[0]
-    event_record = solution.events if events is not None else None
+    event_record = getattr(solution, "events", None)  # a hybrid solve's (`HybridSolution`)
     if throw and not lean:
         condition = functools.partial(mass_matrix_condition, dynamics, p)
         # (the record of events is tied to the check too: a caller may read only it)
