@@ -192,7 +192,7 @@ def _solve_in_chunks(setup, batched, shared, size, chunk, progress, throw, permu
     dynamics, mesh, options = setup[0], setup[1], dict(setup[2])
     count = math.ceil(size / chunk)
     padded = _pad(batched, count * chunk)
-    solve_chunk = _SOLVE_CHUNK[emitters]
+    solve_chunk = _SOLVE_CHUNK["events" if options.get("events") is not None else emitters]
     in_host = count > 1 or jax.process_count() > 1
     solution = None
     bar = tqdm.tqdm(total=count, disable=not progress, unit="chunk", desc="simulate_batch")
@@ -300,8 +300,19 @@ def _sharded(setup, members, shared):
 
 
 # The chunks' solve, by XLA's compiler options (`batch_emitters`).
+def _laid_out(setup, members, shared):
+    """The members' solve as one vmapped program whose batch axis is laid out over the mesh by
+    a sharding constraint (XLA partitions it): for hybrid solves (`events`), whose event root
+    find equinox closure-converts, comparing the shardings of its arguments, which differ
+    inside `shard_map`."""
+    dynamics, mesh, options = setup
+    members = jax.lax.with_sharding_constraint(members, NamedSharding(mesh, _BATCH))
+    return _members(dynamics, members, shared, options)
+
+
 _SOLVE_CHUNK = {None: filter_jit(_sharded, compiler_options=BATCHED_LOOPS),
-                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS | BATCHED_LOOPS)}
+                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS | BATCHED_LOOPS),
+                "events": filter_jit(_laid_out, compiler_options=BATCHED_LOOPS)}
 
 
 def _emitters(dynamics, batched, shared, mesh, dtype):

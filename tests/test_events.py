@@ -539,3 +539,18 @@ def test_rimless_wheel_limit_cycle_and_its_stability():
     np.testing.assert_allclose(omega, expected, rtol=1e-9)
     multiplier = jax.grad(step)(omega)
     np.testing.assert_allclose(multiplier, np.cos(2 * alpha) ** 2, rtol=1e-7)
+
+
+def test_simulate_batch_with_events():
+    """`simulate_batch` passes events through: balls dropped from several heights, each with
+    its own impacts (the closed form), as single solves give them."""
+    heights = np.array([0.3, 1.0, 2.0])
+    q0 = jnp.stack([jnp.zeros(3), jnp.asarray(heights)], axis=1)
+    batch = jaxdyn.simulate_batch(BALL, q0, jnp.zeros((3, 2)), {"m": 1.0, "g": G, "e": 0.9},
+                                  t1=2.0, events=[GROUND], max_events=12, **TOL)
+    for i, h in enumerate(heights):
+        expected = _impact_times(0.9, h, 40)
+        expected = expected[expected <= 2.0]
+        count = int(batch.events.count[i])
+        assert count == len(expected)
+        np.testing.assert_allclose(batch.events.t[i, :count], expected, rtol=1e-9)

@@ -560,3 +560,24 @@ def test_example_robots_are_found_by_name():
     assert jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
     with pytest.raises(ValueError, match="No example robot is named 'hal9000'.*panda"):
         jaxdyn.example_robot_urdf("hal9000")
+
+
+def test_reverse_mode_through_the_articulated_body_algorithm():
+    """`jax.linearize` and `jax.grad` of the Panda's forward dynamics (reverse mode; its
+    batched array program is chunked) against a central difference: a custom_vmap's own JVP
+    could not be linearised by JAX."""
+    robot = Robot.load(robot_file("panda.urdf"))
+    arm = jaxdyn.ArticulatedBody(robot.tree)
+    (_, _, _), (q, u, _) = robot.random_states(1, seed=5)
+    q, u = jnp.asarray(q[0]), jnp.asarray(u[0])
+    direction = jnp.linspace(-1.0, 1.0, q.shape[0])
+
+    def accelerations(q):
+        return arm.accelerations(0.0, q, u, robot.p)
+
+    _, linear = jax.linearize(accelerations, q)
+    h = 1e-6
+    central = (accelerations(q + h * direction) - accelerations(q - h * direction)) / (2 * h)
+    assert_close(linear(direction), central, rtol=1e-6, atol=1e-6)
+    gradient = jax.grad(lambda q: jnp.sum(accelerations(q)))(q)
+    assert_close(gradient @ direction, jnp.sum(central), rtol=1e-6, atol=1e-6)

@@ -169,6 +169,9 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     `simulate`'s (the requested states, then the last state). Returns a `HybridSolution`."""
     dynamics, p, factorisation, layout = args
     q0, u0 = layout.split(y0)
+    # Strongly typed times (a batch passes weakly typed ones): the event's root find is traced
+    # once with the segment's times and must be called with the same types.
+    t0, t1 = (jnp.asarray(t, y0.dtype) for t in (t0, t1))
     counts = _guard_counts(events, dynamics, t0, q0, u0, p)
     hybrid = _Hybrid(events, tuple(counts))
     total = sum(counts)
