@@ -399,3 +399,17 @@ def sample_states(system: ReferenceSystem, num: int, seed: int = 0):
     q = np.stack([np.asarray(s[0], np.float64) for s in states])
     qd = np.stack([np.asarray(s[1], np.float64) for s in states])
     return q, qd
+
+
+def rod_chain():
+    """A planar chain of rods (absolute angles q, point masses m at lengths l) from T and V,
+    as a user writes it: any number of rods, by the sizes of p["m"] and p["l"]."""
+    def kinetic(q, qd, p):
+        vx = jnp.cumsum(p["l"] * jnp.cos(q) * qd)
+        vy = jnp.cumsum(p["l"] * jnp.sin(q) * qd)
+        return 0.5 * jnp.sum(p["m"] * (vx**2 + vy**2))
+
+    def potential(q, p):
+        return p["g"] * jnp.sum(p["m"] * -jnp.cumsum(p["l"] * jnp.cos(q)))
+
+    return jaxdyn.Lagrangian(kinetic, potential)

@@ -126,8 +126,12 @@ def test_batch_members_with_different_event_counts():
 
 
 def test_event_budget_is_reported():
-    with pytest.raises(Exception, match="max_events"):
+    """Out of events: the error names the budget and the time and state where the solve
+    stopped (the third impact, at t₁ (1 + 2e + 2e²))."""
+    with pytest.raises(Exception, match="max_events") as error:
         _bounces(0.8, 1.0, max_events=2)
+    stopped = float(error.value.args[0].split("It happened at t = ")[1].split(",")[0])
+    np.testing.assert_allclose(stopped, _impact_times(0.8, 1.0, 3)[2], rtol=1e-9)
     sol = jaxdyn.simulate(BALL, jnp.array([0.0, 1.0]), jnp.array([0.0, 0.0]),
                           {"m": 1.0, "g": G, "e": 0.8}, t1=3.0, events=[GROUND],
                           max_events=2, throw=False, **TOL)

@@ -15,7 +15,7 @@ import pytest
 import jaxdyn
 from jaxdyn._unroll import Symbol, is_constant, structure, unrolled
 
-from helpers import DOUBLE_PENDULUM, ELASTIC_PENDULUM, assert_close
+from helpers import DOUBLE_PENDULUM, ELASTIC_PENDULUM, assert_close, rod_chain
 
 RNG = np.random.default_rng(0)
 X = jnp.asarray(RNG.normal(size=3))
@@ -148,19 +148,6 @@ def test_static_indexing_unrolls_to_what_xla_computes(index):
     assert_close(unrolled(index, x), index(x), rtol=0)
 
 
-def _chain_energies(n):
-    """A chain of n rods from T and V (absolute angles), as a user writes it."""
-    def T(q, qd, p):
-        vx = jnp.cumsum(p["l"] * jnp.cos(q) * qd)
-        vy = jnp.cumsum(p["l"] * jnp.sin(q) * qd)
-        return 0.5 * jnp.sum(p["m"] * (vx**2 + vy**2))
-
-    def V(q, p):
-        return p["g"] * jnp.sum(p["m"] * -jnp.cumsum(p["l"] * jnp.cos(q)))
-
-    return jaxdyn.Lagrangian(T, V)
-
-
 def _operations(jaxpr):
     """Equations of a jaxpr, those of the programs it calls included."""
     total = 0
@@ -182,7 +169,7 @@ def test_large_straight_line_programs_are_differentiated_as_arrays():
     from jaxdyn._dynamics import equations_of_motion, straight_line_size
 
     n = 10
-    chain = _chain_energies(n)
+    chain = rod_chain()
     p = {"m": jnp.full(n, 0.1), "l": jnp.full(n, 0.1), "g": jnp.asarray(9.81)}
     q = 0.3 + 0.5 * jnp.sin(jnp.arange(n, dtype=jnp.float64) / 3.0)
     u = jnp.linspace(-1.0, 1.0, n)

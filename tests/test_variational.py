@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxdyn
+from helpers import rod_chain
 
 G = 9.81
 
@@ -246,24 +247,12 @@ def test_a_step_too_long_for_newton_is_reported():
                         t1=2.0, dt0=0.05, solver=jaxdyn.VariationalIntegrator(max_newton_steps=1))
 
 
-def _three_link_chain():
-    def kinetic(q, qd, p):
-        vx = jnp.cumsum(p["l"] * jnp.cos(q) * qd)
-        vy = jnp.cumsum(p["l"] * jnp.sin(q) * qd)
-        return 0.5 * jnp.sum(p["m"] * (vx**2 + vy**2))
-
-    def potential(q, p):
-        return p["g"] * jnp.sum(p["m"] * -jnp.cumsum(p["l"] * jnp.cos(q)))
-
-    return jaxdyn.Lagrangian(kinetic, potential)
-
-
 def test_a_root_far_from_the_motion_is_refused():
     """A step too long for a fast, light link: Newton's method converges (residual 5e-14) to
     another root of the discrete equations, with speeds five times the motion's, where the
     energy would jump from −56 to 4561. The step is refused and the error says why; half the
     step follows the motion (energy conserved to the step's O(h²))."""
-    chain = _three_link_chain()
+    chain = rod_chain()
     p = {"m": np.array([0.41, 1.15, 1.92]), "l": np.array([0.38, 0.58, 0.86]), "g": 13.8}
     q0, u0 = jnp.array([0.25, -0.19, 0.02]), jnp.array([10.5, -7.9, 0.7])
     h = 0.0207

@@ -82,6 +82,9 @@ def raise_failures(ts, result, failure, start, t1, last, max_steps, condition,
         if structure_preserving:  # the codes of its implicit step (`VariationalIntegrator`)
             listed += [(result == RESULTS.nonlinear_max_steps_reached, NEWTON, {"t": t_last}),
                        (result == RESULTS.nonlinear_divergence, DISTANT_ROOT, {"t": t_last})]
+        # a hybrid solve out of events: where it stopped (the event past the budget)
+        listed += [(result == RESULTS.max_events_reached, RESULTS[RESULTS.max_events_reached],
+                    last)]
         listed += [(result == RESULTS._name_to_item[name], RESULTS[RESULTS._name_to_item[name]],
                     None) for name in RESULTS._name_to_item if name not in handled]
         return listed
@@ -121,7 +124,7 @@ _ILL_CONDITIONED = 1e8
 
 _EQUATION_FAILURES = (RESULTS.singular_mass_matrix, RESULTS.singular_constraints,
                       RESULTS.nonfinite_forcing, RESULTS.nonfinite_equations)
-_HANDLED = {"successful", "max_steps_reached",
+_HANDLED = {"successful", "max_steps_reached", "max_events_reached",
             "singular_mass_matrix", "singular_constraints", "nonfinite_forcing",
             "nonfinite_equations"}
 
