@@ -180,6 +180,9 @@ def test_resting_contact_released_when_its_normal_force_vanishes():
     np.testing.assert_allclose(sol.events.t[:2], [0.0, t_release], atol=1e-10)
     expected = np.where(ts > t_release, k / 6 * (ts - t_release) ** 3, 0.0)
     np.testing.assert_allclose(sol.q[:, 0], expected, atol=1e-9)
+    # the floor's normal force while the body rests, m g − k t (from the event at t = 0+ on)
+    np.testing.assert_allclose(sol.events.normal_forces[1:, 0],
+                               np.where(ts < t_release, G - k * ts, 0.0)[1:], atol=1e-9)
 
 
 def test_fit_recovers_restitution_and_drop_height():

@@ -45,6 +45,8 @@ class EventRecord(eqx.Module):
     - `resting`: which guards are held at rest after the event (a contact come to rest),
       shape (E, K).
     - `count`: the number of events that happened, a scalar.
+    - `normal_forces`: the normal forces λ of the contacts at rest, at the solution's save
+      times (zero where a contact does not rest), shape (k, K); None where no event can rest.
     """
 
     t: Float[Array, " E"]
@@ -57,6 +59,7 @@ class EventRecord(eqx.Module):
     impulses: Float[Array, "E K"]
     resting: Bool[Array, "E K"]
     count: Int[Array, ""]
+    normal_forces: Float[Array, "k K"] | None = None
 
 
 class HybridSolution(eqx.Module):
@@ -207,14 +210,24 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                               atol=1e-12 if dtype == jnp.float64 else 1e-6)
     event = diffrax.Event([condition(i) for i in range(total)], root_finder, directions)
     ts_requested = requested.ts
+    can_rest = hybrid.rows(dynamics, t0, q0, u0, p) is not None
+
+    def observe(t, y, args):
+        """The requested quantities, and the normal forces λ of the contacts held at rest."""
+        seen = requested.fn(t, y, args)
+        if not can_rest:
+            return seen, None
+        dynamics, p, factorisation, _, (_, _, resting) = args
+        q, u = layout.split(y)
+        return seen, hybrid.accelerations(dynamics, t, q, u, p, factorisation, resting)[2]
 
     def segment(carry, index):
         (t_start, y_start, leaving, resting, done, saved, last, result, steps, count) = carry
         t_from = jnp.where(done, t1, t_start)
         if ts_requested is None:
-            sub = diffrax.SubSaveAt(t1=True, fn=requested.fn)
+            sub = diffrax.SubSaveAt(t1=True, fn=observe)
         else:
-            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=requested.fn)
+            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=observe)
         solution = diffrax.diffeqsolve(
             diffrax.ODETerm(hybrid.field), solver, t_from, t1, dt0, y_start,
             args=(*args, (t_from, leaving, resting)),
@@ -302,20 +315,21 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                  steps, count)
         return carry, record
 
+    no_guards = jnp.zeros((total,), bool)
+    start_args = (*args, (t0, jnp.zeros((total,), dtype), no_guards))
     if ts_requested is None:
-        saved0 = jax.eval_shape(lambda: requested.fn(t0, y0, args))
+        saved0 = jax.eval_shape(lambda: observe(t0, y0, start_args))
     else:
-        saved0 = jax.eval_shape(lambda: jax.vmap(lambda t: requested.fn(t, y0, args))(
+        saved0 = jax.eval_shape(lambda: jax.vmap(lambda t: observe(t, y0, start_args))(
             ts_requested))
     saved0 = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), saved0)
     if ts_requested is None:
         saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
     zero = jnp.zeros((), jnp.int32)
-    no_guards = jnp.zeros((total,), bool)
     carry0 = (t0, y0, jnp.zeros((total,), dtype), no_guards, jnp.array(False), saved0,
               (t0, y0, jnp.array(False)), RESULTS.successful, (zero, zero, zero), zero)
     carry, records = jax.lax.scan(segment, carry0, jnp.arange(max_events + 1))
-    (_, _, _, _, _, saved, (t_last, y_last, stalled), result, steps, count) = carry
+    (_, _, _, _, _, (saved, forces), (t_last, y_last, stalled), result, steps, count) = carry
     records = jax.tree_util.tree_map(lambda x: x[:max_events], records)
     (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses, resting) = records
     ts_out = t_last[None] if ts_requested is None else ts_requested
@@ -328,4 +342,5 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                "num_rejected_steps": steps[2]},
         events=EventRecord(t=t_events, guard=guard, q_minus=q_minus, u_minus=u_minus,
                            q_plus=q_plus, u_plus=u_plus, guard_rates=rates,
-                           impulses=impulses, resting=resting, count=count))
+                           impulses=impulses, resting=resting, count=count,
+                           normal_forces=forces))
