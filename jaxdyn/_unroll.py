@@ -57,7 +57,7 @@ MAX_TRIED = 40_000
 MAX_ANALYSED = 200_000
 # Programs differentiated (`jax.jvp`, `jax.grad`) as straight-line code up to this many scalar
 # operations; larger ones are differentiated as arrays (see `_straight_line`).
-MAX_DIFFERENTIATED = 500
+MAX_DIFFERENTIATED = 2000
 
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
     "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
@@ -218,6 +218,15 @@ def _straight_line(closed, leaves, limit, dtypes, array_program, treedef):
         outs = evaluate(program, full_leaves, budget)
         return [assemble(o, d) for o, d in zip(outs, dtypes)]
 
+    size = []  # the written-out program's operations, counted when first differentiated
+
+    def operations():
+        # (a count, emitting nothing: an attempt at writing out up to MAX_DIFFERENTIATED
+        # operations would leave those it emitted before giving up in the derivative's trace)
+        if not size:
+            size.append(evaluate(closed, leaves, limit, emit=False))
+        return size[0]
+
     @jax.custom_jvp
     def jaxdyn_straight_line(consts, xs, arrays):  # (the name marks it: `_is_straight_line`)
         return evaluated(consts, xs, limit)
@@ -225,15 +234,14 @@ def _straight_line(closed, leaves, limit, dtypes, array_program, treedef):
     @jaxdyn_straight_line.defjvp
     def derivative(primals, tangents):
         def differentiable(consts, xs, arrays):
-            try:
-                return evaluated(consts, xs, min(limit, MAX_DIFFERENTIATED))
-            except _Fallback:
-                program, full_leaves = complete(consts, xs)
-                if array_program is None:
-                    return jex.jaxpr_as_fun(program)(*full_leaves)
-                fn = eqx.combine(arrays, program_rest)
-                return jax.tree_util.tree_leaves(
-                    fn(*jax.tree_util.tree_unflatten(treedef, full_leaves)))
+            if operations() <= MAX_DIFFERENTIATED:
+                return evaluated(consts, xs, limit)
+            program, full_leaves = complete(consts, xs)
+            if array_program is None:
+                return jex.jaxpr_as_fun(program)(*full_leaves)
+            fn = eqx.combine(arrays, program_rest)
+            return jax.tree_util.tree_leaves(
+                fn(*jax.tree_util.tree_unflatten(treedef, full_leaves)))
 
         return jax.jvp(differentiable, primals, tangents)
 
