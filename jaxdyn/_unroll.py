@@ -327,9 +327,13 @@ def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = Tr
     budget = _BUDGET.set(remaining)
     analysis = _ANALYSIS.set(True) if not emit else None
     try:
-        if not emit:  # only the count is wanted
+        if not emit:  # only the count is wanted: inputs and traced constants as symbols
             leaves = [_symbols_like(x, "input") for x in leaves]  # as if traced
-            _eval(jaxpr, closed.consts, [split(x) for x in leaves])
+            # (a traced constant may belong to a trace that has ended, or to an outer one,
+            # such as an input closed over under `jax.jacfwd`: nothing may touch it)
+            consts = [c if _is_concrete(c) else _symbols_like(c, "const")
+                      for c in closed.consts]
+            _eval(jaxpr, consts, [split(x) for x in leaves])
             return max_elements - remaining[0]
         return _eval(jaxpr, closed.consts, [split(x) for x in leaves])
     finally:

@@ -205,6 +205,20 @@ def test_derivative_reaches_values_the_callbacks_close_over():
         assert_close(gradient, -np.sum(np.sin(q) * np.cos(q)), rtol=1e-12)
 
 
+def test_derivative_of_a_program_closing_over_an_outer_traced_value():
+    """The written-out program closes over r, traced by an outer `jax.jacfwd` (as `linearise`
+    differentiates in the inputs): counting the program's operations for its derivative must
+    not touch that tracer, with and without `jax.jit` around."""
+    q = jnp.array([0.3, 0.4])
+
+    def f(r):
+        return unrolled(lambda q: jnp.sin(q) * r[0] + q**2 * r[1], q)
+
+    expected = np.stack([np.sin(q), np.asarray(q) ** 2], axis=1)
+    for transform in (lambda g: g, jax.jit):
+        assert_close(transform(jax.jacfwd(f))(jnp.array([1.0, 2.0])), expected, rtol=1e-15)
+
+
 def test_callbacks_with_custom_derivatives_are_written_out():
     """A callback using a function with a custom JVP (jax.nn.softplus's log-sum-exp, a custom
     rule) in written-out code: values and derivatives equal JAX's evaluation."""
