@@ -53,6 +53,18 @@ from ._integrate import simulate as simulate
 from ._integrate.events import EventRecord as EventRecord
 from ._events import AbstractEvent as AbstractEvent, Event as Event
 from ._form.impact import UnilateralContact as UnilateralContact
+from ._form.contact import (
+    Contact as Contact,
+    ContactRecord as ContactRecord,
+    HuntCrossley as HuntCrossley,
+)
+from ._system.contact import (
+    AbstractTerrain as AbstractTerrain,
+    ContactPoint as ContactPoint,
+    HeightField as HeightField,
+    Plane as Plane,
+    box_corners as box_corners,
+)
 from ._linearisation import (
     LinearModel as LinearModel,
     Modes as Modes,

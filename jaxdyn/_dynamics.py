@@ -128,6 +128,15 @@ class AbstractDynamics(eqx.Module):
         than the mass matrix (only constrained formulations have constraints)."""
         return jnp.zeros((), bool)
 
+    def initial_coordinates(self, q0, u0, p=None):
+        """The coordinates a solve starts from, given `q0` as the caller wrote it: `q0` itself,
+        but for a system whose state holds more than its bodies' coordinates (a
+        `jaxdyn.Contact` scene appends the ground's deformations, zero at the start)."""
+        inner = getattr(self, "dynamics", None)
+        if isinstance(inner, AbstractDynamics):
+            return inner.initial_coordinates(q0, u0, p)
+        return q0
+
     def record(self, name: str, ts, q, u, p=None):
         """The quantity `name` (one of `saved_records`) at stacked states (ts, q, u), for
         the field of `jaxdyn.Solution` of that name."""

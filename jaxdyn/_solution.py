@@ -69,6 +69,8 @@ class Solution(eqx.Module):
     - `constraints`: a `ConstraintRecord` when `save` included "constraints", else None.
     - `inputs`: the inputs r applied at `ts`, shape (k, number of inputs), when `save`
       included "inputs" (a `jaxdyn.Controlled` system), else None.
+    - `contact`: a `jaxdyn.ContactRecord` (forces, gaps, slip at `ts`) when `save` included
+      "contact" (a `jaxdyn.Contact` scene), else None.
     - `dense`: the underlying `diffrax.Solution` when `dense=True` was asked for, else None;
       use `evaluate`.
     - `events`: a `jaxdyn.EventRecord` of the events met when `simulate` was given events
@@ -86,6 +88,7 @@ class Solution(eqx.Module):
     dense: diffrax.Solution | None = None
     constraints: ConstraintRecord | None = None
     inputs: Float[Array, "k r"] | None = None
+    contact: Any = None  # a `ContactRecord` when save included "contact"
     layout: Any = None  # how `dense` holds (q, u): `layout.split(y)` gives them
     events: Any = None  # an `EventRecord` when simulate was given events
 

@@ -226,6 +226,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
             f"dynamics must be a jaxdyn.AbstractDynamics (e.g. jaxdyn.Lagrangian), got "
             f"{type(dynamics).__name__}."
         )
+    q0 = check_vector(dynamics.initial_coordinates(q0, u0, p), "q0")
     dtype = q0.dtype
     # Strongly typed (`jnp.full(n, 0.3)` is weakly typed): as the solve's state is, so that
     # the equations traced for the shape check are the solve's (a weak type retraces them).
@@ -339,6 +340,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
         dense=solution if dense else None,
         constraints=recorded.get("constraints"),
         inputs=recorded.get("inputs"),
+        contact=recorded.get("contact"),
         layout=layout,
         events=event_record,
     )
@@ -366,7 +368,8 @@ def _check_save(save, dynamics):
             raise ValueError(
                 f"save names {name!r}, which {type(dynamics).__name__} does not record: save "
                 f"must name some of {names} (a jaxdyn.Constrained formulation also records "
-                "'constraints', a jaxdyn.Controlled one 'inputs').")
+                "'constraints', a jaxdyn.Controlled one 'inputs', a jaxdyn.Contact scene "
+                "'contact').")
 
 
 # Runge–Kutta stages are written out (`UnrolledStages`) for equations of at most this many

@@ -1,0 +1,345 @@
+r"""Compliant contact: a system touching a terrain at contact points, with a Hunt–Crossley
+normal force and Coulomb friction through a tangential deformation carried in the state.
+
+For each contact (`jaxdyn._system.contact`: gap g, normal n, velocity v_C of the touching
+material point), the penetration δ = max(−g, 0) and its rate δ̇ = −n·v_C give the normal force
+of a Hunt–Crossley law with Hertz's exponent (a sphere on a half-space),
+
+    f_n = max(0, √δ (k δ + c δ̇)),
+
+and the ground's tangential deformation ξ (a 3-vector in the tangent plane, part of the state)
+the friction force
+
+    h = −(k_t ξ_t + c_t v_t),     F_t = s √δ h,     s = min(1, μ f_n / (√δ |h|)),
+    ξ̇ = −(s h + k_t ξ_t) / c_t,
+
+with v_t, ξ_t the tangential parts of v_C and ξ. While the contact sticks (s = 1), ξ̇ = v_t: the
+ground deforms with the point and a tangential spring–damper holds it, so static friction holds
+a body at rest on a slope below tan γ = μ (no creep). When the stick force would leave the
+friction cone, F_t lies on it (|F_t| = μ f_n) and ξ relaxes so that the spring–damper carries
+exactly F_t. Off contact (f_n = 0) ξ relaxes to 0. The force acts on the body at the contact
+point; it enters the equations as generalized active forces Q = Σ (∂v_C/∂u)ᵀ F (Kane and
+Levinson, 1985, ch. 4), one reverse-mode pass through the contact velocities.
+
+References: K. H. Hunt and F. R. E. Crossley, Coefficient of restitution interpreted as damping
+in vibroimpact, J. Appl. Mech. 42 (1975); M. Azad and R. Featherstone, Modeling the contact
+between a rolling sphere and a compliant ground plane, ACRA 2010 and 2014 (the tangential
+deformation as a state); the model jaxsim builds on (Ferigo et al., 2024).
+"""
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._dynamics import AbstractDynamics, accelerations_from_equations
+from .._state import check_vector
+from .._system.contact import (
+    AbstractTerrain,
+    ContactPoint,
+    Plane,
+    check_points,
+    contact_kinematics,
+    find_tree,
+)
+from .._system.tree import _value
+from .articulated import ArticulatedBody, articulated_body_algorithm
+from .controlled import Controlled
+
+
+class HuntCrossley(eqx.Module):
+    r"""The compliant contact law of the module docstring: a Hunt–Crossley normal force
+    f_n = max(0, √δ (k δ + c δ̇)) and Coulomb friction μ through a tangential spring–damper
+    (k_t, c_t) on the ground's deformation.
+
+    **Arguments** (each a number or a function of the parameters p, so that `jaxdyn.fit` can
+    identify it):
+
+    - `stiffness`: k (N/m^{3/2}); a body of weight W resting on N contacts sinks by
+      δ = (W / (N k))^{2/3}: e.g. k = 10⁶ with W/N = 100 N sinks 2.2 mm.
+    - `damping`: c (N s/m^{3/2}); `HuntCrossley.restitution_damping` gives c for a
+      coefficient of restitution at an impact speed.
+    - `friction`: μ, Coulomb's coefficient (static and kinetic).
+    - `tangential_stiffness`, `tangential_damping`: k_t, c_t; default k and c. c_t > 0.
+    - `smoothing`: ε (m) ≥ 0. With ε > 0 the penetration is ε·softplus(−g/ε) and the friction
+      cone's saturation s = 1/√(1 + (√δ|h| / μ f_n)²): forces smooth in the state, for useful
+      rather than exact gradients of contact-rich trajectories (Suh et al., Do differentiable
+      simulators give better policy gradients?, ICML 2022). The default 0 is the exact model.
+    """
+
+    stiffness: float | Callable
+    damping: float | Callable
+    friction: float | Callable
+    tangential_stiffness: float | Callable | None = None
+    tangential_damping: float | Callable | None = None
+    smoothing: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self):
+        for name in ("stiffness", "damping", "friction", "tangential_stiffness",
+                     "tangential_damping"):
+            value = getattr(self, name)
+            if value is not None and not callable(value):
+                if not jnp.all(jnp.isfinite(jnp.asarray(value))) or jnp.any(
+                        jnp.asarray(value) < 0):
+                    raise ValueError(f"HuntCrossley's {name} must be finite and ≥ 0, got "
+                                     f"{value}.")
+        if self.smoothing < 0:
+            raise ValueError(f"smoothing must be ≥ 0, got {self.smoothing}.")
+
+    @staticmethod
+    def restitution_damping(stiffness, restitution, speed):
+        """c for a coefficient of restitution e at impact speed v₀, by Lankarani and
+        Nikravesh's estimate (J. Mech. Des. 112, 1990) for Hunt–Crossley's law:
+        c = 3 k (1 − e²) / (4 v₀)."""
+        return 3.0 * stiffness * (1.0 - restitution**2) / (4.0 * speed)
+
+    def forces(self, kinematics, deformation, p):
+        """(F (k, 3), ξ̇ (k, 3), f_n (k,), F_t (k, 3)) at every contact: the force on the body
+        at the contact point (world axes), the deformation's rate, the normal and the friction
+        force."""
+        dtype = deformation.dtype
+        k, c, mu = (_value(x, p).astype(dtype) for x in (self.stiffness, self.damping,
+                                                          self.friction))
+        k_t = k if self.tangential_stiffness is None else _value(
+            self.tangential_stiffness, p).astype(dtype)
+        c_t = c if self.tangential_damping is None else _value(
+            self.tangential_damping, p).astype(dtype)
+        n, v = kinematics.normal, kinematics.velocity
+        v_n = jnp.sum(n * v, axis=-1)
+        v_t = v - v_n[:, None] * n
+        xi_t = deformation - jnp.sum(n * deformation, axis=-1)[:, None] * n
+        eps = self.smoothing
+        if eps > 0:
+            depth = eps * jax.nn.softplus(-kinematics.gap / eps)
+        else:
+            depth = jnp.maximum(-kinematics.gap, 0.0)
+        root = jnp.sqrt(jnp.where(depth > 0, depth, 1.0))  # (a safe √ at δ = 0)
+        root = jnp.where(depth > 0, root, 0.0)
+        raw = root * (k * depth - c * v_n)
+        if eps > 0:
+            scale = k * eps**1.5
+            normal = scale * jax.nn.softplus(raw / scale)
+        else:
+            normal = jnp.maximum(raw, 0.0)
+        h = -(k_t * xi_t + c_t * v_t)
+        size = jnp.sqrt(jnp.sum(h * h, axis=-1) + jnp.finfo(dtype).tiny)
+        cone = mu * normal
+        if eps > 0:
+            s = cone / jnp.sqrt(cone**2 + (root * size) ** 2 + jnp.finfo(dtype).tiny)
+        else:
+            s = jnp.where(root * size > cone,
+                          cone / jnp.where(root * size > cone, root * size, 1.0), 1.0)
+        friction = (s * root)[:, None] * h
+        rate = -(s[:, None] * h + k_t * xi_t) / c_t
+        return normal[:, None] * n + friction, rate, normal, friction
+
+
+class ContactRecord(eqx.Module):
+    """Contact quantities at the save times of a `jaxdyn.Contact` scene
+    (`simulate(..., save=(..., "contact"))`), per contact point in the order given.
+
+    **Fields** (k save times, c contacts; world axes):
+
+    - `gap`: signed distances (k, c), negative in penetration (not clamped).
+    - `normal_force`: f_n ≥ 0 (k, c).
+    - `friction_force`: F_t (k, c, 3).
+    - `force`: the whole force on the body, f_n n + F_t (k, c, 3).
+    - `position`: the contact points (k, c, 3).
+    - `slip_speed`: |v_t| of the touching material point (k, c).
+    - `deformation`: the ground's tangential deformation ξ (k, c, 3).
+    """
+
+    gap: Float[Array, "k c"]
+    normal_force: Float[Array, "k c"]
+    friction_force: Float[Array, "k c 3"]
+    force: Float[Array, "k c 3"]
+    position: Float[Array, "k c 3"]
+    slip_speed: Float[Array, "k c"]
+    deformation: Float[Array, "k c 3"]
+
+
+class Contact(AbstractDynamics):
+    r"""A formulation in compliant contact with a terrain at contact points:
+
+        q̇ = K u,   ξ̇ = ξ̇(q, ξ, u),   M u̇ = f + Σ_c (∂v_C/∂u)ᵀ F_c(q, ξ, u),
+
+    with F_c the contact law's force (`HuntCrossley`) at contact c and ξ the ground's
+    tangential deformations, three per contact, appended to the coordinates: the scene's
+    coordinates are (q, ξ), and `simulate` accepts the system's q0 alone (ξ = 0). Save
+    "contact" to record forces, gaps and slip (`ContactRecord`).
+
+    **Arguments:**
+
+    - `dynamics`: the formulation in contact (`ArticulatedBody(tree)` for robots, also
+      driven: `Controlled(ArticulatedBody(tree), ...)`; any formulation, with contact points
+      given as functions c(q, p)).
+    - `points`: a sequence of `jaxdyn.ContactPoint` (spheres on links, or functions of q);
+      `jaxdyn.urdf_contact_points` reads a URDF's collision spheres and boxes.
+    - `terrain`: a `jaxdyn.Plane` (default: the ground z = 0) or `jaxdyn.HeightField`.
+    - `model`: the contact law, a `jaxdyn.HuntCrossley`.
+
+    **Example** (ANYmal's feet on flat ground):
+
+        tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf"), floating=True)
+        feet = jaxdyn.urdf_contact_points(path, links=["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"])
+        scene = jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), feet,
+                               model=jaxdyn.HuntCrossley(1e6, 2e3, friction=0.8))
+        sol = jaxdyn.simulate(scene, q0, u0, p, t1=1.0, save=("q", "u", "contact"))
+    """
+
+    dynamics: AbstractDynamics
+    points: tuple[ContactPoint, ...]
+    model: HuntCrossley
+    terrain: AbstractTerrain = Plane()
+
+    def __init__(self, dynamics, points: Sequence[ContactPoint], terrain=None, model=None):
+        if not isinstance(dynamics, AbstractDynamics):
+            raise ValueError("Contact needs a jaxdyn formulation (AbstractDynamics), got "
+                             f"{type(dynamics).__name__}.")
+        if model is None or not isinstance(model, HuntCrossley):
+            raise ValueError("Contact needs a contact law: model=jaxdyn.HuntCrossley(stiffness, "
+                             f"damping, friction), got {model!r}.")
+        terrain = Plane() if terrain is None else terrain
+        if not isinstance(terrain, AbstractTerrain):
+            raise ValueError("terrain must be a jaxdyn.Plane or jaxdyn.HeightField (an "
+                             f"AbstractTerrain), got {type(terrain).__name__}.")
+        self.dynamics = dynamics
+        self.points = check_points(points, find_tree(dynamics))
+        self.terrain = terrain
+        self.model = model
+
+    # -- the scene's state --------------------------------------------------------------------
+
+    @property
+    def num_contact_states(self) -> int:
+        """3 per contact point: the deformations ξ appended to the coordinates."""
+        return 3 * len(self.points)
+
+    def split_coordinates(self, q):
+        """(the system's q, ξ (…, c, 3)) from the scene's coordinates."""
+        k = self.num_contact_states
+        return q[..., :-k], q[..., -k:].reshape(*q.shape[:-1], len(self.points), 3)
+
+    def coordinates(self, q, deformation=None):
+        """The scene's coordinates (q, ξ) from the system's q (ξ = 0 unless given)."""
+        q = jnp.asarray(q)
+        if deformation is None:
+            deformation = jnp.zeros((*q.shape[:-1], self.num_contact_states), q.dtype)
+        return jnp.concatenate([q, jnp.reshape(deformation, (*q.shape[:-1], -1))], axis=-1)
+
+    def initial_coordinates(self, q0, u0, p=None):
+        """`q0` with ξ = 0 appended when it holds the system's coordinates alone."""
+        q0 = jnp.asarray(q0)
+        try:
+            rates = jax.eval_shape(
+                lambda q, u: self.dynamics.coordinate_rates(jnp.zeros((), q.dtype), q, u, p),
+                q0, jnp.asarray(u0))
+        except (ValueError, TypeError, IndexError):
+            return q0
+        if rates.shape == q0.shape:
+            return self.coordinates(q0)
+        return q0
+
+    def _contacts(self, t, q, u, p):
+        """(kinematics, F, ξ̇, f_n, F_t, Q): every contact at one state, and the generalized
+        active forces Q = Σ (∂v_C/∂u)ᵀ F along the speeds (one VJP: v_C is linear in u)."""
+        q, deformation = self.split_coordinates(q)
+        tree = find_tree(self.dynamics)
+
+        def kinematics(u):
+            return contact_kinematics(self.points, self.terrain, tree,
+                                      self.dynamics.coordinate_rates, t, q, u, p)
+
+        kin, pullback = jax.vjp(kinematics, u)
+        force, rate, normal, friction = self.model.forces(kin, deformation, p)
+        zero = jax.tree_util.tree_map(jnp.zeros_like, kin)
+        (generalized,) = pullback(eqx.tree_at(lambda k: k.velocity, zero, force))
+        return kin, force, rate, normal, friction, generalized
+
+    def contact_forces(self, t, q, u, p=None):
+        """Q (m,): the contacts' generalized active forces along the speeds at one state."""
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        return self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1]
+
+    # -- AbstractDynamics ----------------------------------------------------------------------
+
+    @property
+    def saved_records(self):
+        return ("contact", *self.dynamics.saved_records)
+
+    def record(self, name, ts, q, u, p=None):
+        if name != "contact":
+            return self.dynamics.record(name, ts, self.split_coordinates(q)[0], u, p)
+
+        def one(t, q, u):
+            kin, force, _, normal, friction, _ = self._contacts(t, q, u, p)
+            v = kin.velocity
+            v_t = v - jnp.sum(kin.normal * v, axis=-1)[:, None] * kin.normal
+            return ContactRecord(gap=kin.gap, normal_force=normal, friction_force=friction,
+                                 force=force, position=kin.position,
+                                 slip_speed=jnp.linalg.norm(v_t, axis=-1),
+                                 deformation=self.split_coordinates(q)[1])
+
+        return jax.vmap(one)(ts, q, u)
+
+    def coordinate_rates(self, t, q, u, p=None):
+        system_q, _ = self.split_coordinates(q)
+        rate = self._contacts(jnp.asarray(t, q.dtype), q, u, p)[2]
+        return jnp.concatenate([self.dynamics.coordinate_rates(t, system_q, u, p),
+                                rate.reshape(-1)])
+
+    def form_equations(self, t, q, u, p=None):
+        """(M, f + Q)."""
+        mass_matrix, forcing = self.dynamics.form_equations(t, self.split_coordinates(q)[0],
+                                                            u, p)
+        return mass_matrix, forcing + self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1]
+
+    def form_residual(self, t, q, u, ud, p=None):
+        """The system's M u̇ − f, less the contact forces Q."""
+        return (self.dynamics.form_residual(t, self.split_coordinates(q)[0], u, ud, p)
+                - self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1])
+
+    def form_accelerations(self, t, q, u, p=None, *, small):
+        inner = self.dynamics
+        if isinstance(inner, Controlled) and isinstance(inner.dynamics, ArticulatedBody):
+            applied, tree = inner.applied, inner.dynamics.tree
+        elif isinstance(inner, ArticulatedBody):
+            applied, tree = None, inner.tree
+        else:
+            return accelerations_from_equations(self, t, q, u, p, small=small)
+        # The articulated-body algorithm with the contact forces joining the joint forces.
+        t = jnp.asarray(t, q.dtype)
+        system_q, _ = self.split_coordinates(q)
+        forces = self._contacts(t, q, u, p)[-1]
+        if applied is not None:
+            forces = forces + applied(t, system_q, u, p)
+        return articulated_body_algorithm(tree.merge_fixed(), t, system_q, u, p,
+                                          applied=forces)
+
+    def energy_terms(self, t, q, u, p=None):
+        return self.dynamics.energy_terms(t, self.split_coordinates(q)[0], u, p)
+
+    def user_functions(self, t, q, u, p=None):
+        q, u = check_vector(q, "q"), check_vector(u, "u")
+        return (self.dynamics.user_functions(t, self.split_coordinates(q)[0], u, p),
+                self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1])
+
+    def state_projection(self):
+        inner = self.dynamics.state_projection()
+        if inner is None:
+            return None
+
+        def projection(t, q, u, p):
+            system_q, deformation = self.split_coordinates(q)
+            system_q, u = inner(t, system_q, u, p)
+            return self.coordinates(system_q, deformation), u
+
+        return projection
+
+    def singular_constraints(self, t, q, u, p=None):
+        return self.dynamics.singular_constraints(t, self.split_coordinates(q)[0], u, p)
+
+    def state_constraints(self, t, q, u, p=None):
+        return self.dynamics.state_constraints(t, self.split_coordinates(q)[0], u, p)
