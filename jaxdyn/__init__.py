@@ -65,6 +65,7 @@ from ._system.contact import (
     Plane as Plane,
     box_corners as box_corners,
 )
+from ._system.urdf import urdf_contact_points as urdf_contact_points
 from ._linearisation import (
     LinearModel as LinearModel,
     Modes as Modes,

@@ -15,7 +15,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._compile import BATCHED_LOOPS, FUSION_EMITTERS, batch_emitters, filter_jit, gc_paused
-from ._dynamics import straight_line_size
+from ._dynamics import AbstractDynamics, straight_line_size
 from ._errors import error_if, reports_state
 from ._form.controlled import with_inputs
 from ._integrate import simulate
@@ -122,6 +122,8 @@ def simulate_batch(
         dynamics = with_inputs(dynamics, inputs)
     _check_options(options, order)
     dtype = state_dtype(q0, u0)
+    if isinstance(dynamics, AbstractDynamics):  # (a Contact scene appends its deformations)
+        q0 = dynamics.initial_coordinates(jnp.asarray(q0, dtype), jnp.asarray(u0, dtype), p)
     batched, shared, numbers = _split_members(q0, u0, p, batched_params, options, dtype)
     size = _batch_size(batched)
     mesh = Mesh(np.asarray(jax.devices() if devices is None else list(devices)), ("batch",))

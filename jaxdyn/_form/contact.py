@@ -231,14 +231,17 @@ class Contact(AbstractDynamics):
 
     def initial_coordinates(self, q0, u0, p=None):
         """`q0` with ξ = 0 appended when it holds the system's coordinates alone."""
-        q0 = jnp.asarray(q0)
+        q0, u0 = jnp.asarray(q0), jnp.asarray(u0)
+        if q0.ndim == 0 or u0.ndim == 0:
+            return q0
+        first = q0[(0,) * (q0.ndim - 1)], u0[(0,) * (u0.ndim - 1)]  # (stacked states)
         try:
             rates = jax.eval_shape(
                 lambda q, u: self.dynamics.coordinate_rates(jnp.zeros((), q.dtype), q, u, p),
-                q0, jnp.asarray(u0))
+                *first)
         except (ValueError, TypeError, IndexError):
             return q0
-        if rates.shape == q0.shape:
+        if rates.shape == first[0].shape:
             return self.coordinates(q0)
         return q0
 

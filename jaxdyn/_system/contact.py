@@ -51,15 +51,19 @@ class Plane(AbstractTerrain):
     is +x: n = (sin γ, 0, cos γ).
     """
 
-    normal: jax.Array | Callable = (0.0, 0.0, 1.0)
+    normal: tuple | jax.Array | Callable = (0.0, 0.0, 1.0)
     height: float | Callable = 0.0
 
     @classmethod
-    def inclined(cls, angle, height=0.0) -> "Plane":
-        """The plane through height·n with slope `angle` (radians) rising towards −x."""
+    def inclined(cls, angle: float | Callable, height: float | Callable = 0.0) -> "Plane":
+        """The plane through height·n with slope `angle` (radians, or a function of p)
+        rising towards −x."""
         if callable(angle):
-            return cls(lambda p: jnp.stack([jnp.sin(angle(p)), 0.0 * angle(p),
-                                            jnp.cos(angle(p))]), height)
+            def normal(p):
+                gamma = jnp.asarray(angle(p))
+                return jnp.stack([jnp.sin(gamma), jnp.zeros_like(gamma), jnp.cos(gamma)])
+
+            return cls(normal, height)
         return cls((float(np.sin(angle)), 0.0, float(np.cos(angle))), height)
 
     def distance_and_normal(self, x, p):

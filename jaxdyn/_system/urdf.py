@@ -168,3 +168,46 @@ def example_robot_urdf(name: str) -> str:
                              "the file's name or the end of its path.")
     known = ", ".join(sorted({stem(f) for f in files}))
     raise ValueError(f"No example robot is named {name!r}; the collection has: {known}.")
+
+
+def urdf_contact_points(path, links=None) -> list:
+    """Contact points from a URDF file's collision geometry, for `jaxdyn.Contact`:
+    a sphere → a `ContactPoint` of its radius at its centre; a box → its eight corners.
+    Cylinders and meshes are not taken (give their points yourself, e.g. `jaxdyn.box_corners`
+    for a body's bounding box).
+
+    **Arguments:** `path`, the .urdf file; `links`, the names of the links whose geometry to
+    take (default every link), e.g. a legged robot's feet.
+
+    **Example:** ANYmal-C's feet, spheres of 3 cm at the ends of its shanks:
+
+        feet = jaxdyn.urdf_contact_points(path, links=["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"])
+    """
+    import yourdfpy
+
+    from .contact import ContactPoint, box_corners
+
+    model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
+                               build_collision_scene_graph=False,
+                               load_collision_meshes=False).robot
+    names = [link.name for link in model.links]
+    for name in links or ():
+        if name not in names:
+            raise ValueError(f"The URDF file has no link named {name!r}.")
+    points = []
+    for link in model.links:
+        if links is not None and link.name not in links:
+            continue
+        for collision in link.collisions:
+            origin = np.eye(4) if collision.origin is None else np.asarray(collision.origin)
+            rotation, centre = origin[:3, :3], origin[:3, 3]
+            geometry = collision.geometry
+            if geometry.sphere is not None:
+                points.append(ContactPoint(link.name, centre, float(geometry.sphere.radius),
+                                           name=link.name))
+            elif geometry.box is not None:
+                points += box_corners(link.name, geometry.box.size, centre, rotation)
+    if links is not None and not points:
+        raise ValueError(f"The links {list(links)} have no collision spheres or boxes in "
+                         "the URDF file: give their contact points yourself.")
+    return points

@@ -1,0 +1,172 @@
+"""Compliant contact (`jaxdyn.Contact`, `jaxdyn.HuntCrossley`) against closed forms: a block
+sliding to rest, held on a slope by static friction and sliding down a steeper one, a ball
+rolling without slipping, resting forces against the weight, and derivatives against finite
+differences."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdyn
+
+from helpers import assert_close
+
+G, MU, K, C = 9.81, 0.5, 1e6, 2e3
+MASS, SIZE = 1.0, (0.2, 0.1, 0.05)
+TOL = dict(rtol=1e-8, atol=1e-8)
+
+
+def _box_scene():
+    """A box (free body) touching a slope of angle p["slope"] at its four lower corners."""
+    a, b, h = SIZE
+    inertia = MASS / 12 * jnp.diag(jnp.array([b * b + h * h, a * a + h * h, a * a + b * b]))
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("box", jaxdyn.Free(), mass=MASS, inertia=inertia)],
+                                gravity=jnp.array([0.0, 0.0, -G]))
+    corners = [jaxdyn.ContactPoint("box", (sx * a / 2, sy * b / 2, -h / 2))
+               for sx in (-1, 1) for sy in (-1, 1)]
+    return jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), corners,
+                          jaxdyn.Plane.inclined(lambda p: p["slope"]),
+                          jaxdyn.HuntCrossley(K, C, friction=lambda p: p["mu"]))
+
+
+def _resting_on(slope):
+    """The box's coordinates resting flat on the slope (sunk by its static penetration)."""
+    sink = (MASS * G * np.cos(slope) / 4 / K) ** (2 / 3)
+    normal = np.array([np.sin(slope), 0.0, np.cos(slope)])
+    return np.array([*(normal * (SIZE[2] / 2 - sink)), np.cos(slope / 2), 0.0,
+                     np.sin(slope / 2), 0.0])
+
+
+SLOPES = np.radians([0.0, 20.0, 35.0])  # sliding to rest, held (tan γ < μ), sliding down
+V0 = 2.0
+TS = np.linspace(0.0, 0.6, 7)
+
+
+@functools.cache
+def _boxes():
+    """One batch, one compiled solve: the box on flat ground pushed at V0 along x, and at rest
+    on slopes of 20° and 35°."""
+    q0 = np.stack([_resting_on(s) for s in SLOPES])
+    u0 = np.zeros((3, 6))
+    u0[0, 0] = V0  # (speeds in the box's axes: v then ω)
+    p = {"slope": jnp.asarray(SLOPES), "mu": jnp.full(3, MU)}
+    return jaxdyn.simulate_batch(_box_scene(), q0, u0, p, batched_params=True, t1=TS[-1],
+                                 ts=TS, save=("q", "u", "contact"), **TOL)
+
+
+def _downhill(slope):
+    return np.array([np.cos(slope), 0.0, -np.sin(slope)])
+
+
+def test_block_slides_to_rest_at_the_coulomb_stopping_distance():
+    """Pushed at v₀ on flat ground, the box stops after v₀²/(2 μ g) (up to the tangential
+    spring's travel μ W/(√δ k), where the ground holds it when it sticks) and stays put."""
+    sol = _boxes()
+    x = np.asarray(sol.q[0, :, 0])
+    stop = V0**2 / (2 * MU * G)
+    depth = (MASS * G / 4 / K) ** (2 / 3)
+    travel = MU * MASS * G / 4 / (np.sqrt(depth) * K)
+    assert abs(x[-1] - stop) < 2 * travel
+    # decelerating at μ g while sliding (t = 0.1, 0.2 s), then at rest
+    assert_close(sol.u[0, 1:3, 0], V0 - MU * G * TS[1:3], rtol=1e-3)
+    # (it rocks on its corners' springs a while, at a thousandth of v₀ by 0.6 s)
+    assert np.max(np.abs(sol.u[0, -1])) < 1e-3 * V0 and abs(x[-1] - x[-2]) < 1e-5
+
+
+def test_static_friction_holds_the_block_below_the_friction_angle():
+    """tan 20° < μ: the box stays where it was put (it settles by the spring's travel, a
+    fraction of a millimetre, and then does not creep)."""
+    sol = _boxes()
+    travel = (np.asarray(sol.q[1, :, :3]) - _resting_on(SLOPES[1])[:3]) @ _downhill(SLOPES[1])
+    assert np.all(np.abs(travel) < 2e-4)
+    assert abs(travel[-1] - travel[-3]) < 1e-8  # held, not creeping
+    assert np.max(np.abs(sol.u[1, -1])) < 1e-6
+
+
+def test_block_slides_down_a_steep_slope_at_the_coulomb_acceleration():
+    """tan 35° > μ: the box slides with s̈ = g (sin γ − μ cos γ), measured as the rate of its
+    speed once it slides."""
+    sol = _boxes()
+    slope = SLOPES[2]
+    velocity = np.asarray(sol.q[2, :, :3])
+    speed = np.gradient(velocity @ _downhill(slope), TS)
+    rate = (speed[-2] - speed[2]) / (TS[-2] - TS[2])
+    assert_close(rate, G * (np.sin(slope) - MU * np.cos(slope)), rtol=2e-3)
+
+
+def test_resting_forces_carry_the_weight():
+    """At rest the contact forces carry the weight: normal forces summing to W cos γ,
+    friction forces to W sin γ up the slope, W straight up in all."""
+    sol = _boxes()
+    weight = MASS * G
+    for i, settled in ((0, 1e-4), (1, 1e-6)):  # (the pushed box still rocks a little)
+        slope = SLOPES[i]
+        assert_close(np.sum(sol.contact.normal_force[i, -1]), weight * np.cos(slope),
+                     rtol=settled)
+        force = np.sum(np.asarray(sol.contact.force[i, -1]), axis=0)
+        assert_close(force, [0.0, 0.0, weight], atol=settled * weight, rtol=0)
+    assert np.all(np.asarray(sol.contact.gap) < 0)  # every corner touches throughout
+
+
+def test_ball_rolls_without_slipping_at_five_sevenths_g_sin_slope():
+    """A solid ball (I = 2/5 m r²) on a 20° slope with ample friction rolls: its centre
+    accelerates at 5/7 g sin γ and its contact point does not slip."""
+    m, r, slope = 0.5, 0.1, np.radians(20.0)
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link(
+        "ball", jaxdyn.Free(), mass=m, inertia=0.4 * m * r * r * jnp.eye(3))],
+        gravity=jnp.array([0.0, 0.0, -G]))
+    scene = jaxdyn.Contact(jaxdyn.ArticulatedBody(tree),
+                           [jaxdyn.ContactPoint("ball", radius=r)], jaxdyn.Plane.inclined(slope),
+                           jaxdyn.HuntCrossley(K, C, friction=1.0))
+    normal = np.array([np.sin(slope), 0.0, np.cos(slope)])
+    sink = (m * G * np.cos(slope) / K) ** (2 / 3)
+    q0 = jnp.array([*(normal * (r - sink)), 1.0, 0.0, 0.0, 0.0])
+    ts = np.linspace(0.0, 0.5, 6)
+    sol = jaxdyn.simulate(scene, q0, jnp.zeros(6), t1=0.5, ts=ts, save=("q", "contact"), **TOL)
+    s = (np.asarray(sol.q[:, :3]) - np.asarray(q0[:3])) @ _downhill(slope)
+    speed = np.gradient(s, ts)
+    rate = (speed[-2] - speed[1]) / (ts[-2] - ts[1])
+    assert_close(rate, 5 / 7 * G * np.sin(slope), rtol=2e-3)
+    assert np.max(np.asarray(sol.contact.slip_speed[1:])) < 1e-3
+
+
+def test_gradient_through_sliding_against_finite_differences():
+    """∂x(t)/∂μ of a block sliding on a point contact, by reverse mode through the solve, equals
+    central differences (the solve is smooth while it slides), and ≈ −g t²/2 (Coulomb)."""
+    m = 1.0
+    particle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd, lambda q, p: m * G * q[2])
+    scene = jaxdyn.Contact(particle, [jaxdyn.ContactPoint(lambda q, p: q)],
+                           model=jaxdyn.HuntCrossley(K, C, friction=lambda p: p["mu"]))
+    q0 = jnp.array([0.0, 0.0, -(m * G / K) ** (2 / 3)])
+    u0 = jnp.array([V0, 0.0, 0.0])
+
+    def position(mu):
+        sol = jaxdyn.simulate(scene, q0, u0, {"mu": mu}, t1=0.2, save=("q",), **TOL)
+        return sol.q[-1, 0]
+
+    gradient = jax.grad(position)(MU)
+    h = 1e-5
+    central = (position(MU + h) - position(MU - h)) / (2 * h)
+    assert_close(gradient, central, rtol=1e-5)
+    assert_close(gradient, -G * 0.2**2 / 2, rtol=2e-2)
+
+
+def test_contact_errors():
+    """Bad scenes are refused at construction, naming the problem."""
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("box", jaxdyn.Free(), mass=1.0,
+                                             inertia=jnp.eye(3))])
+    law = jaxdyn.HuntCrossley(K, C, friction=MU)
+    with pytest.raises(ValueError, match="no link named 'foot'"):
+        jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), [jaxdyn.ContactPoint("foot")], model=law)
+    with pytest.raises(ValueError, match="contact law"):
+        jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), [jaxdyn.ContactPoint("box")])
+    with pytest.raises(ValueError, match="radius"):
+        jaxdyn.ContactPoint("box", radius=-1.0)
+    with pytest.raises(ValueError, match="friction must be finite"):
+        jaxdyn.HuntCrossley(K, C, friction=-0.1)
+    particle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.0 * q[0])
+    with pytest.raises(ValueError, match="not made from a jaxdyn.RigidBodyTree"):
+        jaxdyn.Contact(particle, [jaxdyn.ContactPoint("box")], model=law)
