@@ -103,6 +103,13 @@ class AbstractDynamics(eqx.Module):
     def user_functions(self, t, q, u, p=None):
         """Every user callback evaluated once, without derivatives (for trace-time checks)."""
 
+    def form_rates_and_accelerations(self, t, q, u, p=None, *, small: bool):
+        """(q̇, u̇, singular, nonfinite): `coordinate_rates` and `form_accelerations` at one
+        state; a formulation whose two share work (`jaxdyn.Contact`: the contact forces)
+        forms them together."""
+        return (self.coordinate_rates(t, q, u, p),
+                *self.form_accelerations(t, q, u, p, small=small))
+
     def form_residual(self, t, q, u, ud, p=None):
         """M u̇ − f for one state, from this formulation's (M, f); a formulation with a cheaper
         route (the articulated-body formulation: the recursive Newton–Euler algorithm)
@@ -270,13 +277,13 @@ def _straight_line_equations(dynamics, t, q, u, p):
 
 
 def _equations(dynamics, t, q, u, p, *, factorisation, small):
+    if factorisation is None:
+        return dynamics.form_rates_and_accelerations(t, q, u, p, small=small)
     rates = dynamics.coordinate_rates(t, q, u, p)
-    if factorisation is not None:
-        forcing = dynamics.form_equations(t, q, u, p)[1]
-        nonfinite = ~jnp.all(jnp.isfinite(forcing))
-        accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
-        return rates, accelerations, factorisation.singular, nonfinite
-    return rates, *dynamics.form_accelerations(t, q, u, p, small=small)
+    forcing = dynamics.form_equations(t, q, u, p)[1]
+    nonfinite = ~jnp.all(jnp.isfinite(forcing))
+    accelerations = jnp.where(nonfinite, jnp.nan, solve(factorisation, forcing))
+    return rates, accelerations, factorisation.singular, nonfinite
 
 
 def accelerations_from_equations(dynamics, t, q, u, p, *, small):

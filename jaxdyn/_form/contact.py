@@ -19,7 +19,7 @@ a body at rest on a slope below tan γ = μ (no creep). When the stick force wou
 friction cone, F_t lies on it (|F_t| = μ f_n) and ξ relaxes so that the spring–damper carries
 exactly F_t. Off contact (f_n = 0) ξ relaxes to 0. The force acts on the body at the contact
 point; it enters the equations as generalized active forces Q = Σ (∂v_C/∂u)ᵀ F (Kane and
-Levinson, 1985, ch. 4), one reverse-mode pass through the contact velocities.
+Levinson, 1985, ch. 4), with J_C the contact point's Jacobian, v_C = J_C u.
 
 References: K. H. Hunt and F. R. E. Crossley, Coefficient of restitution interpreted as damping
 in vibroimpact, J. Appl. Mech. 42 (1975); M. Azad and R. Featherstone, Modeling the contact
@@ -247,18 +247,12 @@ class Contact(AbstractDynamics):
 
     def _contacts(self, t, q, u, p):
         """(kinematics, F, ξ̇, f_n, F_t, Q): every contact at one state, and the generalized
-        active forces Q = Σ (∂v_C/∂u)ᵀ F along the speeds (one VJP: v_C is linear in u)."""
+        active forces Q = Σ J_Cᵀ F along the speeds (v_C = J_C u)."""
         q, deformation = self.split_coordinates(q)
-        tree = find_tree(self.dynamics)
-
-        def kinematics(u):
-            return contact_kinematics(self.points, self.terrain, tree,
-                                      self.dynamics.coordinate_rates, t, q, u, p)
-
-        kin, pullback = jax.vjp(kinematics, u)
+        kin = contact_kinematics(self.points, self.terrain, find_tree(self.dynamics),
+                                 self.dynamics.coordinate_rates, t, q, u, p)
         force, rate, normal, friction = self.model.forces(kin, deformation, p)
-        zero = jax.tree_util.tree_map(jnp.zeros_like, kin)
-        (generalized,) = pullback(eqx.tree_at(lambda k: k.velocity, zero, force))
+        generalized = jnp.einsum("kim,ki->m", kin.jacobian, force)
         return kin, force, rate, normal, friction, generalized
 
     def contact_forces(self, t, q, u, p=None):
@@ -305,21 +299,25 @@ class Contact(AbstractDynamics):
                 - self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1])
 
     def form_accelerations(self, t, q, u, p=None, *, small):
-        inner = self.dynamics
-        if isinstance(inner, Controlled) and isinstance(inner.dynamics, ArticulatedBody):
-            applied, tree = inner.applied, inner.dynamics.tree
-        elif isinstance(inner, ArticulatedBody):
-            applied, tree = None, inner.tree
-        else:
-            return accelerations_from_equations(self, t, q, u, p, small=small)
-        # The articulated-body algorithm with the contact forces joining the joint forces.
+        return self.form_rates_and_accelerations(t, q, u, p, small=small)[1:]
+
+    def form_rates_and_accelerations(self, t, q, u, p=None, *, small):
+        """(q̇ with ξ̇, u̇, singular, nonfinite), the contacts formed once for both."""
         t = jnp.asarray(t, q.dtype)
         system_q, _ = self.split_coordinates(q)
-        forces = self._contacts(t, q, u, p)[-1]
-        if applied is not None:
-            forces = forces + applied(t, system_q, u, p)
-        return articulated_body_algorithm(tree.merge_fixed(), t, system_q, u, p,
-                                          applied=forces)
+        _, _, rate, _, _, forces = self._contacts(t, q, u, p)
+        rates = jnp.concatenate([self.dynamics.coordinate_rates(t, system_q, u, p),
+                                 rate.reshape(-1)])
+        inner = self.dynamics
+        if isinstance(inner, Controlled) and isinstance(inner.dynamics, ArticulatedBody):
+            forces, tree = forces + inner.applied(t, system_q, u, p), inner.dynamics.tree
+        elif isinstance(inner, ArticulatedBody):
+            tree = inner.tree
+        else:
+            return rates, *accelerations_from_equations(self, t, q, u, p, small=small)
+        # The articulated-body algorithm with the contact forces joining the joint forces.
+        return rates, *articulated_body_algorithm(tree.merge_fixed(), t, system_q, u, p,
+                                                  applied=forces)
 
     def energy_terms(self, t, q, u, p=None):
         return self.dynamics.energy_terms(t, self.split_coordinates(q)[0], u, p)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .tree import RigidBodyTree, _value, _vector3
+from .tree import RigidBodyTree, _value, _vector3, ancestry, world_subspaces
 
 
 class AbstractTerrain(eqx.Module):
@@ -138,13 +138,15 @@ def box_corners(link: str, size, centre=(0.0, 0.0, 0.0), rotation=None) -> list[
 
 
 class ContactKinematics(eqx.Module):
-    """Each contact's gap g (k,), normal n (k, 3), contact point x_C (k, 3) and the velocity
-    v_C (k, 3) of the body's material point there, all in world axes."""
+    """Each contact's gap g (k,), normal n (k, 3), contact point x_C (k, 3), the velocity
+    v_C (k, 3) of the body's material point there and its Jacobian J (k, 3, m) along the
+    speeds, v_C = J u, all in world axes."""
 
     gap: jax.Array
     normal: jax.Array
     position: jax.Array
     velocity: jax.Array
+    jacobian: jax.Array
 
 
 def find_tree(dynamics) -> RigidBodyTree | None:
@@ -183,47 +185,49 @@ def check_points(points: Sequence[ContactPoint], tree: RigidBodyTree | None):
 
 def contact_kinematics(points, terrain: AbstractTerrain, tree, kinematics, t, q, u, p
                        ) -> ContactKinematics:
-    """Gaps, normals, contact points and their velocities (module docstring) at one state.
+    """Gaps, normals, contact points, their velocities and Jacobians (module docstring) at one
+    state.
 
-    `kinematics` gives q̇ = K(t, q, p) u, for points given as functions c(q, p) (their
-    velocity is the JVP of c along q̇); points on links read one pass of the tree's link
-    velocities."""
+    A point on a link moves with the speeds of the joints from the root to its link: its
+    Jacobian's columns are those speeds' motion subspaces carried to the point (Featherstone,
+    2008, §4.6; `world_subspaces`), from one pass of the tree's link poses, and zero for
+    the other speeds; no derivative is taken. A point given as a function c(q, p) has the
+    Jacobian (∂c/∂q) K (`kinematics` gives q̇ = K(t, q, p) u, linear in u)."""
     dtype = q.dtype
-    on_links = [c for c in points if isinstance(c.body, str)]
-    if on_links:
+    m = u.shape[0]
+    centres, jacobians, turning = [], [], []
+    if any(isinstance(c.body, str) for c in points):
         index = {link.name: i for i, link in enumerate(tree.links)}
-        rotations, origins, omega, velocity = tree.link_states(t, q, u, p)
-        link = np.array([index[c.body] for c in on_links])
-        offset = jnp.asarray(np.array([c.point for c in on_links]), dtype)
-        r = rotations[link]
-        centre = origins[link] + jnp.einsum("kij,kj->ki", r, offset)
-        w_local = omega[link]
-        v_local = velocity[link] + jnp.cross(w_local, offset)
-        link_centres = (centre, jnp.einsum("kij,kj->ki", r, v_local),
-                        jnp.einsum("kij,kj->ki", r, w_local))
-    if len(on_links) < len(points):
-        qd = kinematics(t, q, u, p)
-        moving = [jax.jvp(lambda q: jnp.asarray(c.body(q, p), dtype), (q,), (qd,))
-                  for c in points if not isinstance(c.body, str)]
-        for x, _ in moving:
-            if x.shape != (3,):
-                raise ValueError(f"A contact point's function c(q, p) must return a 3-vector "
-                                 f"in the world, got shape {x.shape}.")
-    centres, velocities, omegas, k_link, k_fn = [], [], [], 0, 0
-    for c in points:  # in the order given
+        rotations, origins = tree.link_poses(t, q, p)
+    for c in points:
         if isinstance(c.body, str):
-            centres.append(link_centres[0][k_link])
-            velocities.append(link_centres[1][k_link])
-            omegas.append(link_centres[2][k_link])
-            k_link += 1
+            chain, _, u_index = ancestry(tree, index[c.body])
+            links = RigidBodyTree([tree.links[k] for k in chain])
+            rotation, origin = rotations[np.array(chain)], origins[np.array(chain)]
+            centre = origin[-1] + rotation[-1] @ jnp.asarray(c.point, dtype)
+            omega, velocity = world_subspaces(links, rotation, origin, centre)
+            full = jnp.zeros((2, 3, m), dtype).at[:, :, u_index].set(
+                jnp.stack([omega.T, velocity.T]))
+            centres.append(centre)
+            turning.append(full[0])
+            jacobians.append(full[1])
         else:
-            centres.append(moving[k_fn][0])
-            velocities.append(moving[k_fn][1])
-            omegas.append(jnp.zeros(3, dtype))
-            k_fn += 1
-    centre, v_centre, w = jnp.stack(centres), jnp.stack(velocities), jnp.stack(omegas)
+            centre = jnp.asarray(c.body(q, p), dtype)
+            if centre.shape != (3,):
+                raise ValueError(f"A contact point's function c(q, p) must return a 3-vector "
+                                 f"in the world, got shape {centre.shape}.")
+            # (∂c/∂q) K column by column: K is linear in u
+            jacobian = jax.jacfwd(lambda u: jax.jvp(
+                lambda q: jnp.asarray(c.body(q, p), dtype), (q,),
+                (kinematics(t, q, u, p),))[1])(u)
+            centres.append(centre)
+            turning.append(jnp.zeros((3, m), dtype))  # (a point: no turning)
+            jacobians.append(jacobian)
+    centre, omega, jacobian = jnp.stack(centres), jnp.stack(turning), jnp.stack(jacobians)
     distance, normal = jax.vmap(lambda x: terrain.distance_and_normal(x, p))(centre)
     radius = jnp.asarray(np.array([c.radius for c in points]), dtype)
     arm = -radius[:, None] * normal  # from the centre to the contact point
+    # v_C = v_c + ω × arm, column by column: J_C = J_c − [arm]× J_ω
+    jacobian = jacobian + jnp.cross(omega, arm[:, :, None], axisa=1, axisb=1, axisc=1)
     return ContactKinematics(gap=distance - radius, normal=normal, position=centre + arm,
-                             velocity=v_centre + jnp.cross(w, arm))
+                             velocity=jacobian @ u, jacobian=jacobian)
