@@ -170,3 +170,28 @@ def test_contact_errors():
     particle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.0 * q[0])
     with pytest.raises(ValueError, match="not made from a jaxdyn.RigidBodyTree"):
         jaxdyn.Contact(particle, [jaxdyn.ContactPoint("box")], model=law)
+
+
+def test_friction_and_stiffness_identified_from_sliding_and_bouncing():
+    """`jaxdyn.fit` recovers μ and k from two trajectories of one ball (a point mass with a
+    point contact): sliding to rest (its stopping distance v₀²/(2 μ g) sets μ) and bouncing on
+    the compliant floor (its rebounds set k at a given damping c)."""
+    m, c = 1.0, 50.0
+    ball = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd, lambda q, p: m * G * q[2])
+    scene = jaxdyn.Contact(ball, [jaxdyn.ContactPoint(lambda q, p: q)], model=jaxdyn.HuntCrossley(
+        lambda p: p["k"], c, friction=lambda p: p["mu"]))
+    true = {"mu": jnp.asarray(0.4), "k": jnp.asarray(2e5)}
+    ts = np.linspace(0.0, 0.8, 41)
+    starts = [(jnp.array([0.0, 0.0, -(m * G / 2e5) ** (2 / 3)]), jnp.array([V0, 0.0, 0.0])),
+              (jnp.array([0.0, 0.0, 0.2]), jnp.zeros(3))]
+    experiments = []
+    for q0, u0 in starts:
+        sol = jaxdyn.simulate(scene, q0, u0, true, t1=ts[-1], ts=ts, save=("q",), rtol=1e-10,
+                              atol=1e-10)
+        experiments.append(jaxdyn.Experiment(ts, sol.q[:, :3], q0, u0))
+    assert np.ptp(np.asarray(experiments[1].observations[:, 2])) > 0.15  # it bounced
+    result = jaxdyn.fit(scene, experiments, {"mu": jnp.asarray(0.6), "k": jnp.asarray(5e5)},
+                        observe=lambda t, q, u, p: q[:3])
+    assert result.converged
+    assert_close(result.params["mu"], 0.4, rtol=1e-5)
+    assert_close(result.params["k"], 2e5, rtol=1e-3)

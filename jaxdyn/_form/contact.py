@@ -124,10 +124,14 @@ class HuntCrossley(eqx.Module):
         else:
             normal = jnp.maximum(raw, 0.0)
         h = -(k_t * xi_t + c_t * v_t)
-        size = jnp.sqrt(jnp.sum(h * h, axis=-1) + jnp.finfo(dtype).tiny)
+        square = jnp.sum(h * h, axis=-1)
+        # |h| with every derivative finite at h = 0 (a contact at rest with no load along the
+        # ground): the second derivative of √(|h|² + tiny) overflows there
+        size = jnp.where(square > 0, jnp.sqrt(jnp.where(square > 0, square, 1.0)), 0.0)
         cone = mu * normal
         if eps > 0:
-            s = cone / jnp.sqrt(cone**2 + (root * size) ** 2 + jnp.finfo(dtype).tiny)
+            both = cone**2 + (root * size) ** 2
+            s = jnp.where(both > 0, cone / jnp.sqrt(jnp.where(both > 0, both, 1.0)), 1.0)
         else:
             s = jnp.where(root * size > cone,
                           cone / jnp.where(root * size > cone, root * size, 1.0), 1.0)
