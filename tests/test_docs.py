@@ -182,7 +182,7 @@ q0, u0 = np.array([1.0, 0.5]), np.zeros(2)
 # The pages whose code runs, in the order a reader meets them (the site's navigation): the
 # README's quickstart first, whose pendulum later pages reuse.
 _PAGES = ["README.md", "docs/getting-started.md"] + [f"docs/guides/{name}.md" for name in (
-    "formulations", "trees", "constraints", "events", "control", "identification", "batches",
+    "formulations", "trees", "constraints", "events", "contact", "control", "identification", "batches",
     "stability", "speed", "errors")]
 
 

@@ -3,9 +3,16 @@ normal force and Coulomb friction through a tangential deformation carried in th
 
 For each contact (`jaxdyn._system.contact`: gap g, normal n, velocity v_C of the touching
 material point), the penetration δ = max(−g, 0) and its rate δ̇ = −n·v_C give the normal force
-of a Hunt–Crossley law with Hertz's exponent (a sphere on a half-space),
+of Hunt and Crossley's law with Hertz's exponent (a sphere on a half-space),
 
-    f_n = max(0, √δ (k δ + c δ̇)),
+    f_n = max(0, k δ^{3/2} (1 + α δ̇)),
+
+whose damping vanishes with the penetration as the stiffness does: the force, and with it the
+vector field, is Lipschitz through a touchdown, so that sensitivities (and gradients) through
+it are those of the solution. (A damping c √δ δ̇, as in Azad and Featherstone's normal law,
+has an unbounded derivative ∂f/∂δ = c δ̇ / (2√δ) at touchdown: derivatives through a solve then
+depend on where the steps fall, and missed finite differences by a factor 2 on a trotting
+quadruped.)
 
 and the ground's tangential deformation ξ (a 3-vector in the tangent plane, part of the state)
 the friction force
@@ -51,18 +58,21 @@ from .controlled import Controlled
 
 class HuntCrossley(eqx.Module):
     r"""The compliant contact law of the module docstring: a Hunt–Crossley normal force
-    f_n = max(0, √δ (k δ + c δ̇)) and Coulomb friction μ through a tangential spring–damper
-    (k_t, c_t) on the ground's deformation.
+    f_n = max(0, k δ^{3/2} (1 + α δ̇)) and Coulomb friction μ through a tangential
+    spring–damper (k_t, c_t) on the ground's deformation.
 
     **Arguments** (each a number or a function of the parameters p, so that `jaxdyn.fit` can
     identify it):
 
     - `stiffness`: k (N/m^{3/2}); a body of weight W resting on N contacts sinks by
       δ = (W / (N k))^{2/3}: e.g. k = 10⁶ with W/N = 100 N sinks 2.2 mm.
-    - `damping`: c (N s/m^{3/2}); `HuntCrossley.restitution_damping` gives c for a
-      coefficient of restitution at an impact speed.
+    - `dissipation`: α (s/m), Hunt and Crossley's damping factor; an impact at speed v₀ has
+      a coefficient of restitution e with α ≈ 3 (1 − e²) / (4 v₀)
+      (`HuntCrossley.restitution_dissipation`).
     - `friction`: μ, Coulomb's coefficient (static and kinetic).
-    - `tangential_stiffness`, `tangential_damping`: k_t, c_t; default k and c. c_t > 0.
+    - `tangential_stiffness`: k_t (N/m^{3/2}); default k.
+    - `tangential_damping`: c_t (N s/m^{3/2}) > 0; default k_t × 2 ms, so that off contact the
+      deformation relaxes in 2 ms.
     - `smoothing`: ε (m) ≥ 0. With ε > 0 the penetration is ε·softplus(−g/ε) and the friction
       cone's saturation s = 1/√(1 + (√δ|h| / μ f_n)²): forces smooth in the state, for useful
       rather than exact gradients of contact-rich trajectories (Suh et al., Do differentiable
@@ -70,14 +80,14 @@ class HuntCrossley(eqx.Module):
     """
 
     stiffness: float | Callable
-    damping: float | Callable
+    dissipation: float | Callable
     friction: float | Callable
     tangential_stiffness: float | Callable | None = None
     tangential_damping: float | Callable | None = None
     smoothing: float = eqx.field(static=True, default=0.0)
 
     def __check_init__(self):
-        for name in ("stiffness", "damping", "friction", "tangential_stiffness",
+        for name in ("stiffness", "dissipation", "friction", "tangential_stiffness",
                      "tangential_damping"):
             value = getattr(self, name)
             if value is not None and not callable(value):
@@ -89,22 +99,22 @@ class HuntCrossley(eqx.Module):
             raise ValueError(f"smoothing must be ≥ 0, got {self.smoothing}.")
 
     @staticmethod
-    def restitution_damping(stiffness, restitution, speed):
-        """c for a coefficient of restitution e at impact speed v₀, by Lankarani and
+    def restitution_dissipation(restitution, speed):
+        """α for a coefficient of restitution e at impact speed v₀, by Lankarani and
         Nikravesh's estimate (J. Mech. Des. 112, 1990) for Hunt–Crossley's law:
-        c = 3 k (1 − e²) / (4 v₀)."""
-        return 3.0 * stiffness * (1.0 - restitution**2) / (4.0 * speed)
+        α = 3 (1 − e²) / (4 v₀)."""
+        return 3.0 * (1.0 - restitution**2) / (4.0 * speed)
 
     def forces(self, kinematics, deformation, p):
         """(F (k, 3), ξ̇ (k, 3), f_n (k,), F_t (k, 3)) at every contact: the force on the body
         at the contact point (world axes), the deformation's rate, the normal and the friction
         force."""
         dtype = deformation.dtype
-        k, c, mu = (_value(x, p).astype(dtype) for x in (self.stiffness, self.damping,
-                                                          self.friction))
+        k, alpha, mu = (_value(x, p).astype(dtype) for x in (self.stiffness, self.dissipation,
+                                                              self.friction))
         k_t = k if self.tangential_stiffness is None else _value(
             self.tangential_stiffness, p).astype(dtype)
-        c_t = c if self.tangential_damping is None else _value(
+        c_t = 2e-3 * k_t if self.tangential_damping is None else _value(
             self.tangential_damping, p).astype(dtype)
         n, v = kinematics.normal, kinematics.velocity
         v_n = jnp.sum(n * v, axis=-1)
@@ -117,7 +127,7 @@ class HuntCrossley(eqx.Module):
             depth = jnp.maximum(-kinematics.gap, 0.0)
         root = jnp.sqrt(jnp.where(depth > 0, depth, 1.0))  # (a safe √ at δ = 0)
         root = jnp.where(depth > 0, root, 0.0)
-        raw = root * (k * depth - c * v_n)
+        raw = k * depth * root * (1.0 - alpha * v_n)
         if eps > 0:
             scale = k * eps**1.5
             normal = scale * jax.nn.softplus(raw / scale)
@@ -204,7 +214,7 @@ class Contact(AbstractDynamics):
                              f"{type(dynamics).__name__}.")
         if model is None or not isinstance(model, HuntCrossley):
             raise ValueError("Contact needs a contact law: model=jaxdyn.HuntCrossley(stiffness, "
-                             f"damping, friction), got {model!r}.")
+                             f"dissipation, friction), got {model!r}.")
         terrain = Plane() if terrain is None else terrain
         if not isinstance(terrain, AbstractTerrain):
             raise ValueError("terrain must be a jaxdyn.Plane or jaxdyn.HeightField (an "

@@ -1,0 +1,189 @@
+"""Contact: ANYmal-C standing and trotting on flat ground, jaxdyn against MJX on the same model.
+
+Both simulators load the same URDF (example-robot-data's anymal_c_simple_description) with the
+same contact geometry: the four feet, spheres of 3 cm, against a ground plane, friction 0.8;
+both drive the twelve joints by the same PD law, τ = 400 (q* − q) − 10 q̇, towards the file's
+standing posture (standing) or an open-loop 2 Hz trot (trotting). They differ in the contact
+model and the integration, as the two libraries do:
+
+- jaxdyn: `jaxdyn.Contact` with `HuntCrossley(1e6, 1.0, friction=0.8)` (compliant, the
+  ground's tangential deformation in the state), the articulated-body algorithm, diffrax's
+  adaptive Tsit5 at rtol = atol = 1e-6 (and the default Dopri8 at 1e-10, for one robot);
+- MJX: MuJoCo's soft convex contact (default solref/solimp), its default Euler integrator at
+  MuJoCo's default step of 2 ms (`mujoco-mjx`, in the benchmarks' extras).
+
+Printed, per simulated second: one robot (jitted, warm), and per state in a vmapped batch of
+`--batch` robots (default 1024) dropped from different heights; the first call's time (trace
+and compile) in this process; the standing robot's settled vertical force against its weight
+in each, as a check that both simulate the same scene.
+
+Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0]
+"""
+
+import argparse
+import re
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxdyn
+
+PATH = jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
+FEET = ["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"]
+STANCE = np.array([-0.1, 0.7, -1.0, 0.1, 0.7, -1.0, -0.1, -0.7, 1.0, 0.1, -0.7, 1.0])
+KP, KD, MU = 400.0, 10.0, 0.8
+
+
+def targets(t, swing):
+    """The PD law's joint targets: the stance, plus (swing > 0) an open-loop trot."""
+    angle = 2 * jnp.pi * 2.0 * t + jnp.array([0.0, jnp.pi, jnp.pi, 0.0])
+    lifted, side = jnp.maximum(jnp.sin(angle), 0.0), jnp.array([1.0, 1.0, -1.0, -1.0])
+    lift = jnp.where(swing > 0, 0.3, 0.0)
+    hip = swing * jnp.cos(angle) + 0.5 * lift * lifted * side
+    knee = -lift * lifted * side
+    offset = jnp.stack([jnp.zeros(4), hip, knee], axis=1).reshape(-1)
+    return STANCE + jnp.minimum(t / 0.5, 1.0) * offset
+
+
+def timed(fn, *args):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
+
+
+# -- jaxdyn --------------------------------------------------------------------------------
+
+tree, params = jaxdyn.from_urdf(PATH, floating=True)
+feet = jaxdyn.urdf_contact_points(PATH, links=FEET)
+weight = 9.81 * sum(float(link["mass"]) for link in params.values())
+
+
+def pd(t, q, u, p):
+    return KP * (targets(t, p["swing"]) - q[7:]) - KD * u[6:]
+
+
+robot = jaxdyn.Controlled(jaxdyn.ArticulatedBody(tree), input_map=list(range(6, 18)), inputs=pd)
+scene = jaxdyn.Contact(robot, feet, model=jaxdyn.HuntCrossley(1e6, 1.0, friction=MU))
+upright = jnp.concatenate([jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]), STANCE])
+standing_height = -min(float(jaxdyn.frame_pose(tree, f.body, upright, params, point=f.point)[1][2])
+                       - f.radius for f in feet)
+
+
+def jaxdyn_run(seconds, solver, tol):
+    def run(q0, swing):
+        sol = jaxdyn.simulate(scene, q0, jnp.zeros(18), {**params, "swing": swing}, t1=seconds,
+                              save=("q", "contact"), solver=solver, rtol=tol, atol=tol)
+        return sol.q[-1], jnp.sum(sol.contact.force[-1, :, 2]), sol.num_steps
+    return run
+
+
+# -- MJX -----------------------------------------------------------------------------------
+
+def mujoco_model():
+    """The URDF as MuJoCo compiles it (visual and non-sphere collision geometry dropped, no
+    bodies fused), with a free joint on the base, a ground plane, friction μ on the feet and
+    position actuators τ = KP (ctrl − q) − KD q̇."""
+    import mujoco
+
+    text = open(PATH).read()
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
+    text = re.sub(r"<collision>((?!</collision>).)*?<(cylinder|mesh|box)\b.*?</collision>", "",
+                  text, flags=re.S)
+    text = re.sub(r"(<robot[^>]*>)", r'\1<mujoco><compiler discardvisual="true" '
+                  r'fusestatic="false" balanceinertia="false"/></mujoco>', text, count=1)
+    model = mujoco.MjModel.from_xml_string(text)
+    with tempfile.NamedTemporaryFile(suffix=".xml") as f:
+        mujoco.mj_saveLastXML(f.name, model)
+        root = ET.parse(f.name).getroot()
+    world = root.find("worldbody")
+    base = world.find("body")
+    base.insert(0, ET.Element("freejoint", name="root"))
+    world.insert(0, ET.Element("geom", name="floor", type="plane", size="0 0 1",
+                               friction=f"{MU} 0.005 0.0001"))
+    for geom in root.iter("geom"):
+        if geom.get("type") == "sphere":
+            geom.set("friction", f"{MU} 0.005 0.0001")
+    actuators = ET.SubElement(root, "actuator")
+    joints = [j.get("name") for j in root.iter("joint") if j.get("type", "hinge") == "hinge"]
+    for name in joints:
+        ET.SubElement(actuators, "position", joint=name, kp=str(KP), kv=str(KD))
+    return mujoco.MjModel.from_xml_string(ET.tostring(root, encoding="unicode")), joints
+
+
+def mjx_run(model, seconds):
+    import mujoco
+    from mujoco import mjx
+
+    mx = mjx.put_model(model)
+    steps = int(round(seconds / model.opt.timestep))
+    feet_geoms = np.array([i for i in range(model.ngeom)
+                           if model.geom_type[i] == mujoco.mjtGeom.mjGEOM_SPHERE])
+
+    def run(qpos0, swing):
+        data = mjx.make_data(mx).replace(qpos=qpos0)
+
+        def step(data, k):
+            data = data.replace(ctrl=targets(k * model.opt.timestep, swing))
+            return mjx.step(mx, data), None
+
+        data, _ = jax.lax.scan(step, data, jnp.arange(steps))
+        # vertical contact forces on the feet: the constraint forces along +z of each contact
+        force = jnp.sum(data.qfrc_constraint[2])  # the base's z row: total vertical support
+        return data.qpos, force, jnp.asarray(steps)
+    return run
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--batch", type=int, default=1024)
+    parser.add_argument("--seconds", type=float, default=1.0)
+    args = parser.parse_args()
+    seconds, batch = args.seconds, args.batch
+    heights = standing_height + 0.02 + 0.08 * jnp.linspace(0.0, 1.0, batch)
+    q0s = jnp.tile(upright, (batch, 1)).at[:, 2].set(heights)
+    print(f"ANYmal-C, {seconds} s simulated, batch of {batch}; CPU: {jax.devices()[0]}")
+    print(f"weight {weight:.2f} N, standing height {standing_height:.4f} m\n")
+
+    runs = {"jaxdyn Tsit5 1e-6": jaxdyn_run(seconds, diffrax.Tsit5(), 1e-6)}
+    try:
+        model, joints = mujoco_model()
+        assert len(joints) == 12
+        # MuJoCo's qpos: base position, quaternion (w, x, y, z), joints: jaxdyn's order.
+        runs["MJX Euler 2 ms"] = mjx_run(model, seconds)
+    except ImportError as error:
+        print(f"(MJX not installed: {error}; pip install -e '.[benchmarks]')")
+    rows = []
+    for name, run in runs.items():
+        one = jax.jit(run)
+        many = jax.jit(jax.vmap(run, in_axes=(0, None)))
+        first = timed(one, q0s[0], 0.0)
+        (q, force, steps) = one(q0s[0], 0.0)
+        single = min(timed(one, q0s[0], 0.0) for _ in range(3))
+        trot = min(timed(one, upright.at[2].set(standing_height), 0.2) for _ in range(2))
+        first_batch = timed(many, q0s, 0.0)
+        per_state = timed(many, q0s, 0.0) / batch
+        qs, forces, _ = many(q0s, 0.0)
+        rows.append((name, first, first_batch, single / seconds, trot / seconds,
+                     per_state / seconds, float(force), float(jnp.median(forces)), int(steps)))
+    print(f"{'':22s} {'first':>7s} {'first':>7s} {'standing':>9s} {'trotting':>9s} "
+          f"{'batch':>10s}  settled vertical force")
+    print(f"{'':22s} {'one':>7s} {'batch':>7s} {'ms/s':>9s} {'ms/s':>9s} {'ms/s/state':>10s}"
+          f"  one, batch median (N)    steps")
+    for name, first, first_batch, single, trot, per_state, f1, fb, steps in rows:
+        print(f"{name:22s} {first:6.1f}s {first_batch:6.1f}s {1e3 * single:9.2f} "
+              f"{1e3 * trot:9.2f} {1e3 * per_state:10.3f}  {f1:8.2f} {fb:8.2f}     {steps}")
+    if len(rows) == 2:
+        print(f"\nratio jaxdyn / MJX per state in the batch: {rows[0][5] / rows[1][5]:.2f}; "
+              f"one robot standing: {rows[0][3] / rows[1][3]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
