@@ -36,7 +36,21 @@ import numpy as np
 
 import jaxdyn
 
-PATH = jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
+def _positive_hatch(path):
+    """The URDF with the 142 g hatch's inertia made positive definite (its off-diagonal terms
+    equal its diagonal, a singular tensor MuJoCo refuses): the diagonal kept, for both."""
+    text = open(path).read()
+    text = text.replace('<inertia ixx="0.001" ixy="0.001" ixz="0.001" iyy="0.001" iyz="0.001" '
+                        'izz="0.001"/>', '<inertia ixx="0.001" ixy="0" ixz="0" iyy="0.001" '
+                        'iyz="0" izz="0.001"/>')
+    out = tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False)
+    out.write(text)
+    out.close()
+    return out.name
+
+
+PATH = _positive_hatch(
+    jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf"))
 FEET = ["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"]
 STANCE = np.array([-0.1, 0.7, -1.0, 0.1, 0.7, -1.0, -0.1, -0.7, 1.0, 0.1, -0.7, 1.0])
 KP, KD, MU = 400.0, 10.0, 0.8
@@ -88,9 +102,11 @@ def jaxdyn_run(seconds, solver, tol):
 # -- MJX -----------------------------------------------------------------------------------
 
 def mujoco_model():
-    """The URDF as MuJoCo compiles it (visual and non-sphere collision geometry dropped, no
-    bodies fused), with a free joint on the base, a ground plane, friction μ on the feet and
-    position actuators τ = KP (ctrl − q) − KD q̇."""
+    """The URDF as MuJoCo compiles it (visual and non-sphere collision geometry dropped; bodies
+    fixed to their parents fused into them, as jaxdyn welds them; the inertias of a few camera
+    links of a few grams, which break the triangle inequality, balanced), with a free joint on
+    the base, a ground plane, friction μ on the feet and position actuators
+    τ = KP (ctrl − q) − KD q̇."""
     import mujoco
 
     text = open(PATH).read()
@@ -98,14 +114,17 @@ def mujoco_model():
     text = re.sub(r"<collision>((?!</collision>).)*?<(cylinder|mesh|box)\b.*?</collision>", "",
                   text, flags=re.S)
     text = re.sub(r"(<robot[^>]*>)", r'\1<mujoco><compiler discardvisual="true" '
-                  r'fusestatic="false" balanceinertia="false"/></mujoco>', text, count=1)
+                  r'fusestatic="true" balanceinertia="true"/></mujoco>'
+                  r'<link name="world"/><joint name="root" type="floating"><parent link="world"/>'
+                  r'<child link="base"/></joint>', text, count=1)
     model = mujoco.MjModel.from_xml_string(text)
     with tempfile.NamedTemporaryFile(suffix=".xml") as f:
         mujoco.mj_saveLastXML(f.name, model)
         root = ET.parse(f.name).getroot()
     world = root.find("worldbody")
-    base = world.find("body")
-    base.insert(0, ET.Element("freejoint", name="root"))
+    for joint in root.iter("joint"):  # jaxdyn's tree has neither joint limits nor torque limits
+        for limit in ("range", "actuatorfrcrange", "limited"):
+            joint.attrib.pop(limit, None)
     world.insert(0, ET.Element("geom", name="floor", type="plane", size="0 0 1",
                                friction=f"{MU} 0.005 0.0001"))
     for geom in root.iter("geom"):
@@ -113,6 +132,7 @@ def mujoco_model():
             geom.set("friction", f"{MU} 0.005 0.0001")
     actuators = ET.SubElement(root, "actuator")
     joints = [j.get("name") for j in root.iter("joint") if j.get("type", "hinge") == "hinge"]
+    # (the floating root becomes a free joint)
     for name in joints:
         ET.SubElement(actuators, "position", joint=name, kp=str(KP), kv=str(KD))
     return mujoco.MjModel.from_xml_string(ET.tostring(root, encoding="unicode")), joints

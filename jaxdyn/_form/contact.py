@@ -71,8 +71,9 @@ class HuntCrossley(eqx.Module):
       (`HuntCrossley.restitution_dissipation`).
     - `friction`: μ, Coulomb's coefficient (static and kinetic).
     - `tangential_stiffness`: k_t (N/m^{3/2}); default k.
-    - `tangential_damping`: c_t (N s/m^{3/2}) > 0; default k_t × 2 ms, so that off contact the
-      deformation relaxes in 2 ms.
+    - `tangential_damping`: c_t (N s/m^{3/2}) > 0; default k_t × 10 ms, so that off contact the
+      deformation relaxes in 10 ms (a tangential response near critically damped for a
+      kilogram on a contact, lightly damped for tens of kilograms: raise it for those).
     - `smoothing`: ε (m) ≥ 0. With ε > 0 the penetration is ε·softplus(−g/ε) and the friction
       cone's saturation s = 1/√(1 + (√δ|h| / μ f_n)²): forces smooth in the state, for useful
       rather than exact gradients of contact-rich trajectories (Suh et al., Do differentiable
@@ -114,7 +115,7 @@ class HuntCrossley(eqx.Module):
                                                               self.friction))
         k_t = k if self.tangential_stiffness is None else _value(
             self.tangential_stiffness, p).astype(dtype)
-        c_t = 2e-3 * k_t if self.tangential_damping is None else _value(
+        c_t = 1e-2 * k_t if self.tangential_damping is None else _value(
             self.tangential_damping, p).astype(dtype)
         n, v = kinematics.normal, kinematics.velocity
         v_n = jnp.sum(n * v, axis=-1)
@@ -139,12 +140,17 @@ class HuntCrossley(eqx.Module):
         # ground): the second derivative of √(|h|² + tiny) overflows there
         size = jnp.where(square > 0, jnp.sqrt(jnp.where(square > 0, square, 1.0)), 0.0)
         cone = mu * normal
-        if eps > 0:
-            both = cone**2 + (root * size) ** 2
-            s = jnp.where(both > 0, cone / jnp.sqrt(jnp.where(both > 0, both, 1.0)), 1.0)
+        # s: the share of the stick force h that the cone lets through. Without normal force
+        # (off contact, or separating faster than the damping allows) there is no friction,
+        # s = 0, and ξ relaxes: with s = 1 there, ξ̇ = v_t would wind the deformation up in
+        # flight and fling the body back at touchdown.
+        if eps > 0:  # a smooth cone, closing smoothly below the force scale k ε^{3/2} μ
+            both = cone**2 + (root * size) ** 2 + (mu * k * eps**1.5) ** 2
+            s = cone / jnp.sqrt(both)
         else:
-            s = jnp.where(root * size > cone,
-                          cone / jnp.where(root * size > cone, root * size, 1.0), 1.0)
+            over = root * size > cone
+            s = jnp.where(cone > 0, jnp.where(over, cone / jnp.where(over, root * size, 1.0),
+                                              1.0), 0.0)
         friction = (s * root)[:, None] * h
         rate = -(s[:, None] * h + k_t * xi_t) / c_t
         return normal[:, None] * n + friction, rate, normal, friction
