@@ -144,6 +144,22 @@ class AbstractDynamics(eqx.Module):
             return inner.initial_coordinates(q0, u0, p)
         return q0
 
+    @property
+    def bounds_steps(self) -> bool:
+        """Whether an adaptive solve must limit its steps by `step_bound` (a `jaxdyn.Contact`
+        scene); a system wrapping another follows it."""
+        inner = getattr(self, "dynamics", None)
+        return isinstance(inner, AbstractDynamics) and inner.bounds_steps
+
+    def step_bound(self, t, q, u, p=None):
+        """The longest step an adaptive solve may take next from (t, q, u): unbounded, but for
+        a system whose vector field switches on within a step too fast for the error
+        estimate to see (a contact stepped over: `jaxdyn.Contact`)."""
+        inner = getattr(self, "dynamics", None)
+        if isinstance(inner, AbstractDynamics):
+            return inner.step_bound(t, q, u, p)
+        return jnp.asarray(jnp.inf, q.dtype)
+
     def record(self, name: str, ts, q, u, p=None):
         """The quantity `name` (one of `saved_records`) at stacked states (ts, q, u), for
         the field of `jaxdyn.Solution` of that name."""

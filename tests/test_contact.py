@@ -231,3 +231,38 @@ def test_anymal_dropped_on_the_ground_settles_on_its_feet():
     moved = np.asarray(sol.contact.position[:, -1, :, :2] - sol.contact.position[:, -2, :, :2])
     assert np.max(np.abs(moved)) < 1e-4  # feet planted, not sliding
     assert np.all(np.abs(np.asarray(sol.q[:, -1, 2]) - standing) < 0.02)  # stands at its height
+
+
+def test_bouncing_with_friction_never_gains_energy_and_frictionless_bounces_differentiate():
+    """A ball thrown onto a compliant floor with friction: its energy in flight never grows
+    from one flight to the next (the ground's deformation relaxes off contact rather than
+    storing the sliding speed), and friction stops its sliding. Without friction, the derivative of its
+    height at t through several bounces with respect to the drop height equals central
+    differences (the normal law is Lipschitz through touchdown)."""
+    m = 1.0
+    ball = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd, lambda q, p: m * G * q[2])
+
+    def scene(mu):
+        return jaxdyn.Contact(ball, [jaxdyn.ContactPoint(lambda q, p: q)],
+                              model=jaxdyn.HuntCrossley(1e5, 0.2, friction=mu))
+
+    ts = np.linspace(0.0, 1.5, 301)
+    sol = jaxdyn.simulate(scene(0.3), jnp.array([0.0, 0.0, 0.1]), jnp.array([1.0, 0.5, 0.0]),
+                          t1=ts[-1], ts=ts, save=("q", "u", "contact"), **TOL)
+    energy = 0.5 * m * np.sum(np.asarray(sol.u) ** 2, axis=1) + m * G * np.asarray(sol.q[:, 2])
+    flying = np.asarray(sol.contact.gap[:, 0]) > 1e-4
+    assert flying.sum() > 50 and (~flying).sum() > 20
+    assert np.all(np.diff(energy[flying]) <= 1e-9)
+    assert np.max(np.abs(np.asarray(sol.u[-1, :2]))) < 1e-3  # no longer sliding (it still
+    # bounces: Hunt and Crossley's restitution tends to 1 at low impact speeds)
+
+    def height(h0):  # (three bounces by t = 0.8)
+        return jaxdyn.simulate(scene(0.0), jnp.stack([0.0, 0.0, h0]), jnp.zeros(3), t1=0.8,
+                               save=("q",), rtol=1e-12, atol=1e-12).q[-1, 2]
+
+    # The derivative of the discrete solve carries no error control of its own: across the
+    # stiff touchdowns it is as accurate as the solve's tolerance allows (5e-3 at 1e-8,
+    # 3e-5 at 1e-12), and agrees with differences of solves that tight.
+    h0, step = jnp.asarray(0.1), 1e-5
+    central = (height(h0 + step) - height(h0 - step)) / (2 * step)
+    assert_close(jax.grad(height)(h0), central, rtol=1e-4)

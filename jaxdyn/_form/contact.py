@@ -56,6 +56,11 @@ from .articulated import ArticulatedBody, articulated_body_algorithm
 from .controlled import Controlled
 
 
+# How far past the terrain's surface one step may carry a contact point (m): about the
+# penetration at which compliant ground holds a body, so that the step's stages meet the force.
+APPROACH_DEPTH = 1e-3
+
+
 class HuntCrossley(eqx.Module):
     r"""The compliant contact law of the module docstring: a Hunt–Crossley normal force
     f_n = max(0, k δ^{3/2} (1 + α δ̇)) and Coulomb friction μ through a tangential
@@ -274,6 +279,25 @@ class Contact(AbstractDynamics):
         force, rate, normal, friction = self.model.forces(kin, deformation, p)
         generalized = jnp.einsum("kim,ki->m", kin.jacobian, force)
         return kin, force, rate, normal, friction, generalized
+
+    @property
+    def bounds_steps(self) -> bool:
+        return True
+
+    def step_bound(self, t, q, u, p=None):
+        """The time for the nearest approaching contact point to reach the terrain and
+        `APPROACH_DEPTH` into it: min over contacts of (max(g, 0) + d) / max(−n·v_C, 0). In
+        flight (free fall integrated exactly, with an error estimate of zero) an adaptive
+        solver's steps grow until one would carry a point through the ground, or deep into it,
+        between two stages; so bounded, a stage meets the contact force and the error
+        estimate takes over."""
+        system_q, _ = self.split_coordinates(q)
+        kin = contact_kinematics(self.points, self.terrain, find_tree(self.dynamics),
+                                 self.dynamics.coordinate_rates, t, system_q, u, p)
+        approach = -jnp.sum(kin.normal * kin.velocity, axis=-1)
+        reach = jnp.maximum(kin.gap, 0.0) + APPROACH_DEPTH
+        return jnp.min(jnp.where(approach > 0, reach / jnp.where(approach > 0, approach, 1.0),
+                                 jnp.inf))
 
     def contact_forces(self, t, q, u, p=None):
         """Q (m,): the contacts' generalized active forces along the speeds at one state."""

@@ -141,7 +141,32 @@ def guard(controller):
 
 def _guard_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
     t_next, state = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
+    if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+        t_next = jnp.minimum(t_next, t0 + _step_bound(args, t0, y0))
     return t_next, (state, jnp.abs(t1 - t0), jnp.array(False))
+
+
+def _step_bound(args, t, y):
+    """The longest next step the dynamics allow from (t, y) (`AbstractDynamics.step_bound`:
+    contacts not yet touching must not be stepped over), from the solve's arguments (those
+    of the plain solve, or of the forward-sensitivity solve, whose state is y then the
+    sensitivities)."""
+    from .._dynamics import AbstractDynamics
+
+    if not isinstance(args, tuple) or not args:
+        return jnp.inf
+    if isinstance(args[0], tuple) and args[0] and isinstance(args[0][0], AbstractDynamics):
+        args = args[0]  # (the sensitivity solve's: ((dynamics, p, ...), directions))
+    if not isinstance(args[0], AbstractDynamics) or len(args) < 4:
+        return jnp.inf
+    dynamics, p, _, layout = args[:4]
+    if not dynamics.bounds_steps:
+        return jnp.inf
+    if layout.flat:  # (y, or y then the sensitivities: y's q and u come first)
+        q, u = y[:layout.n], y[layout.n:layout.n + layout.m]
+    else:
+        q, u = y
+    return dynamics.step_bound(t, q, u, p).astype(jnp.result_type(t))
 
 
 def _guard_adapt(controller, can_shrink, t0, t1, y0, y1_candidate, args, y_error,
@@ -152,6 +177,10 @@ def _guard_adapt(controller, can_shrink, t0, t1, y0, y1_candidate, args, y_error
     state, span, _ = guard_state
     keep, next_t0, next_t1, made_jump, state, result = controller.adapt_step_size(
         t0, t1, y0, y1_candidate, args, y_error, error_order, state)
+    if can_shrink:  # the next step stops short of contacts it could otherwise step over
+        bound = _step_bound(args, next_t0, jax.tree_util.tree_map(
+            lambda a, b: jnp.where(keep, a, b), y1_candidate, y0))
+        next_t1 = jnp.minimum(next_t1, next_t0 + bound)
     nonfinite = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(x))
                                     for x in jax.tree_util.tree_leaves(y1_candidate)]))
     if can_shrink:

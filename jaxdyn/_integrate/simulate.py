@@ -255,7 +255,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
     keep_q = bool(records) or "q" in save or "qd" in save
     keep_u = bool(records) or "u" in save or "qd" in save
 
-    layout = Layout(q0.shape[0], not isinstance(solver, AbstractStructurePreserving))
+    layout = Layout(q0.shape[0], not isinstance(solver, AbstractStructurePreserving),
+                    u0.shape[0])
 
     def observe(t, y, args):
         q, u = layout.split(y)

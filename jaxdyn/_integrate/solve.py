@@ -26,6 +26,7 @@ class Layout(eqx.Module):
 
     n: int = eqx.field(static=True)
     flat: bool = eqx.field(static=True)
+    m: int = eqx.field(static=True, default=0)  # the speeds (read by step bounds)
 
     def join(self, q, u):
         return jnp.concatenate([q, u], axis=-1) if self.flat else (q, u)
