@@ -139,13 +139,10 @@ def mujoco_model():
 
 
 def mjx_run(model, seconds):
-    import mujoco
     from mujoco import mjx
 
     mx = mjx.put_model(model)
     steps = int(round(seconds / model.opt.timestep))
-    feet_geoms = np.array([i for i in range(model.ngeom)
-                           if model.geom_type[i] == mujoco.mjtGeom.mjGEOM_SPHERE])
 
     def run(qpos0, swing):
         data = mjx.make_data(mx).replace(qpos=qpos0)

@@ -236,9 +236,10 @@ def test_anymal_dropped_on_the_ground_settles_on_its_feet():
 def test_bouncing_with_friction_never_gains_energy_and_frictionless_bounces_differentiate():
     """A ball thrown onto a compliant floor with friction: its energy in flight never grows
     from one flight to the next (the ground's deformation relaxes off contact rather than
-    storing the sliding speed), and friction stops its sliding. Without friction, the derivative of its
-    height at t through several bounces with respect to the drop height equals central
-    differences (the normal law is Lipschitz through touchdown)."""
+    storing the sliding speed), and friction stops its sliding. Without friction, the
+    derivative of its height at t through three bounces with respect to the drop height
+    equals central differences (the normal law is Lipschitz through touchdown, and no step
+    passes over a touchdown)."""
     m = 1.0
     ball = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd, lambda q, p: m * G * q[2])
 

@@ -182,8 +182,8 @@ q0, u0 = np.array([1.0, 0.5]), np.zeros(2)
 # The pages whose code runs, in the order a reader meets them (the site's navigation): the
 # README's quickstart first, whose pendulum later pages reuse.
 _PAGES = ["README.md", "docs/getting-started.md"] + [f"docs/guides/{name}.md" for name in (
-    "formulations", "trees", "constraints", "events", "contact", "control", "identification", "batches",
-    "stability", "speed", "errors")]
+    "formulations", "trees", "constraints", "events", "contact", "control", "identification",
+    "batches", "stability", "speed", "errors")]
 
 
 def test_the_pages_cover_every_guide():

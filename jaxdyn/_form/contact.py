@@ -207,8 +207,10 @@ class Contact(AbstractDynamics):
 
     **Example** (ANYmal's feet on flat ground):
 
-        tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf"), floating=True)
-        feet = jaxdyn.urdf_contact_points(path, links=["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"])
+        path = jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
+        tree, p = jaxdyn.from_urdf(path, floating=True)
+        feet = jaxdyn.urdf_contact_points(path, links=[f"{leg}_FOOT" for leg in
+                                                       ("LF", "RF", "LH", "RH")])
         scene = jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), feet,
                                model=jaxdyn.HuntCrossley(1e6, 2e3, friction=0.8))
         sol = jaxdyn.simulate(scene, q0, u0, p, t1=1.0, save=("q", "u", "contact"))
