@@ -270,3 +270,23 @@ def test_bouncing_with_friction_never_gains_energy_and_frictionless_bounces_diff
     h0, step = jnp.asarray(0.1), 1e-5
     central = (height(h0 + step) - height(h0 - step)) / (2 * step)
     assert_close(jax.grad(height)(h0), central, rtol=1e-4)
+
+
+def test_height_field_of_a_slope_is_the_inclined_plane():
+    """A height field z = −x tan γ is the plane `Plane.inclined(γ)`: the same signed distance
+    (exact for a plane, not clamped above or below it) and normal at any point; and a
+    curved one, z = a cos(x), has the normal (a sin x, 0, 1)/√(1 + a² sin² x)."""
+    slope = np.radians(25.0)
+    field = jaxdyn.HeightField(lambda x, y, p: -x * jnp.tan(slope))
+    plane = jaxdyn.Plane.inclined(slope)
+    points = jnp.array([[0.3, -0.2, 0.5], [-1.0, 2.0, -0.3], [0.0, 0.0, 0.0]])
+    for x in points:
+        (d_field, n_field), (d_plane, n_plane) = (terrain.distance_and_normal(x, None)
+                                                  for terrain in (field, plane))
+        assert_close(d_field, d_plane, rtol=1e-14, atol=1e-15)
+        assert_close(n_field, n_plane, rtol=1e-14, atol=1e-15)
+    a, x = 0.2, 0.7
+    hills = jaxdyn.HeightField(lambda x, y, p: a * jnp.cos(x))
+    _, normal = hills.distance_and_normal(jnp.array([x, 0.0, 1.0]), None)
+    assert_close(normal, np.array([a * np.sin(x), 0.0, 1.0]) / np.hypot(1.0, a * np.sin(x)),
+                 rtol=1e-14)
