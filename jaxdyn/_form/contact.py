@@ -82,8 +82,9 @@ class HuntCrossley(eqx.Module):
       foot), so that a light body landing while sliding springs back a little, as a rubber
       ball does; a larger c_t damps that, at the cost of shorter steps (ANYmal's drop: 506
       steps with k_t × 2 ms, 1370 with k_t × 10 ms).
-    - `smoothing`: ε (m) ≥ 0. With ε > 0 the penetration is ε·softplus(−g/ε) and the friction
-      cone's saturation s = 1/√(1 + (√δ|h| / μ f_n)²): forces smooth in the state, for useful
+    - `smoothing`: ε (m) ≥ 0. With ε > 0 the penetration is ε·softplus(−g/ε), the normal force
+      a softplus of the law at the force scale k ε^{3/2}, and the friction cone's saturation
+      s = μ f_n / √((μ f_n)² + δ|h|² + (μ k ε^{3/2})²): forces smooth in the state, for useful
       rather than exact gradients of contact-rich trajectories (Suh et al., Do differentiable
       simulators give better policy gradients?, ICML 2022). The default 0 is the exact model.
     """
