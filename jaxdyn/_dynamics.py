@@ -282,7 +282,11 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
 
 def straight_line_size(dynamics, t, q, u, p) -> int | None:
     """The scalar operations of `equations_of_motion` as straight-line code, or None when it
-    evaluates this system as array operations (too large for straight-line code)."""
+    evaluates this system as array operations (too large for straight-line code, or never
+    tried: `equations_in_straight_line`, whose count would cost a whole trace of the
+    equations, 1.1 s for ANYmal in contact)."""
+    if not dynamics.equations_in_straight_line:
+        return None
     return straight_line_program_size(functools.partial(_straight_line_equations, dynamics),
                                       t, q, u, p)
 

@@ -373,9 +373,18 @@ class Contact(AbstractDynamics):
         return self.dynamics.energy_terms(t, self.split_coordinates(q)[0], u, p)
 
     def user_functions(self, t, q, u, p=None):
+        """The system's callbacks, the contact points given as functions, the terrain at the
+        first point and the law's constants: the user's code alone, which `simulate` checks
+        with constants folded at trace time (not the tree's kinematics, whose constant
+        operations would then each run and compile on their own)."""
         q, u = check_vector(q, "q"), check_vector(u, "u")
-        return (self.dynamics.user_functions(t, self.split_coordinates(q)[0], u, p),
-                self._contacts(jnp.asarray(t, q.dtype), q, u, p)[-1])
+        system_q, _ = self.split_coordinates(q)
+        points = [c.body(system_q, p) for c in self.points if callable(c.body)]
+        where = points[0] if points else jnp.zeros(3, q.dtype)
+        law = [_value(x, p) for x in (self.model.stiffness, self.model.dissipation,
+                                      self.model.friction)]
+        return (self.dynamics.user_functions(t, system_q, u, p), points,
+                self.terrain.distance_and_normal(jnp.asarray(where, q.dtype), p), law)
 
     def state_projection(self):
         inner = self.dynamics.state_projection()
