@@ -341,7 +341,12 @@ def mass_matrix_blocks(dynamics, t, q, u, p):
 
 def constant_mass_matrix(dynamics, t, q, u, p) -> bool:
     """True if M provably depends on the parameters alone (Cartesian coordinates, linear
-    systems): it can then be factored once per solve instead of at every step."""
+    systems): it can then be factored once per solve instead of at every step. Not analysed
+    where M is formed as an array program (`mass_matrix_in_straight_line` false: trees'
+    composite-rigid-body algorithm, whose M turns with the links): the analysis would cost a
+    whole trace of the equations (2 s for ANYmal in contact) to find what the joints say."""
+    if not dynamics.mass_matrix_in_straight_line:
+        return False
     elements = _mass_matrix_structure(dynamics, t, q, u, p)
     if elements is None:
         return False
