@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._dynamics import equations_of_motion, formed_equations
+from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._errors import error_if
 from .._solution import RESULTS
 
@@ -151,8 +151,6 @@ def _step_bound(args, t, y):
     contacts not yet touching must not be stepped over), from the solve's arguments (those
     of the plain solve, or of the forward-sensitivity solve, whose state is y then the
     sensitivities)."""
-    from .._dynamics import AbstractDynamics
-
     if not isinstance(args, tuple) or not args:
         return jnp.inf
     if isinstance(args[0], tuple) and args[0] and isinstance(args[0][0], AbstractDynamics):
