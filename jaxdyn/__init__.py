@@ -60,6 +60,7 @@ from ._form.contact import (
 )
 from ._system.contact import (
     AbstractTerrain as AbstractTerrain,
+    ContactPair as ContactPair,
     ContactPoint as ContactPoint,
     HeightField as HeightField,
     Plane as Plane,

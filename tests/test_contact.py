@@ -4,6 +4,7 @@ rolling without slipping, resting forces against the weight, and derivatives aga
 differences."""
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -154,6 +155,70 @@ def test_gradient_through_sliding_against_finite_differences():
     assert_close(gradient, -G * 0.2**2 / 2, rtol=2e-2)
 
 
+def _rotation(quaternion):
+    """R from a unit quaternion (w, x, y, z), written out (the numbers a reader checks)."""
+    w, x, y, z = quaternion
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def test_two_balls_collide_conserving_momentum_with_hertz_impact():
+    """Two free balls (1 kg and 0.5 kg, r = 5 cm, no gravity) touch each other
+    (`ContactPair`). Head on and elastic (α = μ = 0) their speeds leave as for a perfectly
+    elastic impact, v₁' = (m₁ − m₂)/(m₁ + m₂) v, v₂' = 2 m₁/(m₁ + m₂) v, with Hertz's
+    greatest penetration δ = (5 m* v²/(4 k))^{2/5} and contact time
+    2 (δ/v) ∫₀¹ (1 − x^{5/2})^{−1/2} dx (m* the reduced mass). Glancing, spinning, dissipative
+    and with friction, they keep their linear and angular momentum."""
+    masses, r, v = (1.0, 0.5), 0.05, 2.0
+    tree = jaxdyn.RigidBodyTree(
+        [jaxdyn.Link(name, jaxdyn.Free(), mass=m, inertia=0.4 * m * r * r * jnp.eye(3))
+         for name, m in zip("ab", masses)], gravity=jnp.zeros(3))
+    pair = jaxdyn.ContactPair(jaxdyn.ContactPoint("a", radius=r),
+                              jaxdyn.ContactPoint("b", radius=r))
+    scene = jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), [pair], model=jaxdyn.HuntCrossley(
+        K, lambda p: p["alpha"], friction=lambda p: p["mu"]))
+    still = [1.0, 0.0, 0.0, 0.0]
+    q0 = np.array([[-0.2, 0.0, 0.0, *still, 0.0, 0.0, 0.0, *still],
+                   [-0.2, 0.03, 0.0, *still, 0.0, 0.0, 0.01, *still]])
+    u0 = np.zeros((2, 12))
+    u0[:, 0] = v
+    u0[1, 2:6], u0[1, 9] = (0.3, 0.0, 5.0, 1.0), 2.0  # (speeds in the balls' axes: v, ω)
+    p = {"alpha": jnp.array([0.0, 0.3]), "mu": jnp.array([0.0, 0.4])}
+    ts = np.linspace(0.0, 0.2, 2001)
+    sol = jaxdyn.simulate_batch(scene, q0, u0, p, batched_params=True, t1=ts[-1], ts=ts,
+                                save=("q", "u", "contact"), **TOL)
+    m1, m2 = masses
+    assert_close(sol.u[0, -1, [0, 6]], [(m1 - m2) / (m1 + m2) * v, 2 * m1 / (m1 + m2) * v],
+                 rtol=1e-7)
+    reduced = m1 * m2 / (m1 + m2)
+    deepest = (5 * reduced * v**2 / (4 * K)) ** 0.4
+    assert_close(-np.min(sol.contact.gap[0]), deepest, rtol=1e-4)  # (sampled every 0.1 ms)
+    gap = np.asarray(sol.contact.gap[0, :, 0])
+    crossings = [ts[i] - gap[i] * (ts[i + 1] - ts[i]) / (gap[i + 1] - gap[i])
+                 for i in np.flatnonzero(np.sign(gap[1:]) != np.sign(gap[:-1]))]
+    integral = 0.4 * math.gamma(0.4) * math.gamma(0.5) / math.gamma(0.9)
+    assert_close(crossings[1] - crossings[0], 2 * deepest / v * integral, rtol=1e-4)
+
+    def momenta(q, u):
+        linear, angular = np.zeros(3), np.zeros(3)
+        for i, m in enumerate(masses):
+            turn = _rotation(q[7 * i + 3:7 * i + 7])
+            velocity, spin = turn @ u[6 * i:6 * i + 3], turn @ u[6 * i + 3:6 * i + 6]
+            linear += m * velocity
+            angular += np.cross(q[7 * i:7 * i + 3], m * velocity) + 0.4 * m * r * r * spin
+        return linear, angular
+
+    q, u = np.asarray(sol.q[1]), np.asarray(sol.u[1])
+    before, after = momenta(q[0], u[0]), momenta(q[-1], u[-1])
+    assert np.max(np.asarray(sol.contact.slip_speed[1])) > 0.5  # they rubbed
+    assert np.max(np.asarray(sol.contact.normal_force[1])) > 100.0  # and hit
+    # (to the solver's tolerance: momentum is conserved by the equations, but the balls'
+    # speeds are in their own axes, so its sum is not a linear function of the state)
+    assert_close(after[0], before[0], rtol=0, atol=1e-10)
+    assert_close(after[1], before[1], rtol=0, atol=1e-10)
+
+
 def test_contact_errors():
     """Bad scenes are refused at construction, naming the problem."""
     tree = jaxdyn.RigidBodyTree([jaxdyn.Link("box", jaxdyn.Free(), mass=1.0,
@@ -165,6 +230,11 @@ def test_contact_errors():
         jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), [jaxdyn.ContactPoint("box")])
     with pytest.raises(ValueError, match="radius"):
         jaxdyn.ContactPoint("box", radius=-1.0)
+    with pytest.raises(ValueError, match="two different spheres"):
+        jaxdyn.ContactPair(jaxdyn.ContactPoint("box"), jaxdyn.ContactPoint("box"))
+    with pytest.raises(ValueError, match="no link named 'ball'"):
+        jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), [jaxdyn.ContactPair(
+            jaxdyn.ContactPoint("box"), jaxdyn.ContactPoint("ball"))], model=law)
     with pytest.raises(ValueError, match="friction must be finite"):
         jaxdyn.HuntCrossley(K, C, friction=-0.1)
     particle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.0 * q[0])

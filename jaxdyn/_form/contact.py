@@ -45,13 +45,15 @@ from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._state import check_vector
 from .._system.contact import (
     AbstractTerrain,
+    ContactPair,
     ContactPoint,
     Plane,
+    _members,
     check_points,
     contact_kinematics,
     find_tree,
 )
-from .._system.tree import _value
+from .._system.tree import RigidBodyTree, _value
 from .articulated import ArticulatedBody, articulated_body_algorithm
 from .controlled import Controlled
 
@@ -204,7 +206,8 @@ class Contact(AbstractDynamics):
     - `dynamics`: the formulation in contact (`ArticulatedBody(tree)` for robots, also
       driven: `Controlled(ArticulatedBody(tree), ...)`; any formulation, with contact points
       given as functions c(q, p)).
-    - `points`: a sequence of `jaxdyn.ContactPoint` (spheres on links, or functions of q);
+    - `points`: a sequence of `jaxdyn.ContactPoint` (spheres on links, or functions of q)
+      touching the terrain, and of `jaxdyn.ContactPair` (two spheres touching each other);
       `jaxdyn.urdf_contact_points` reads a URDF's collision spheres and boxes.
     - `terrain`: a `jaxdyn.Plane` (default: the ground z = 0) or `jaxdyn.HeightField`.
     - `model`: the contact law, a `jaxdyn.HuntCrossley`.
@@ -221,11 +224,12 @@ class Contact(AbstractDynamics):
     """
 
     dynamics: AbstractDynamics
-    points: tuple[ContactPoint, ...]
+    points: tuple[ContactPoint | ContactPair, ...]
     model: HuntCrossley
     terrain: AbstractTerrain = Plane()
 
-    def __init__(self, dynamics, points: Sequence[ContactPoint], terrain=None, model=None):
+    def __init__(self, dynamics, points: Sequence[ContactPoint | ContactPair], terrain=None,
+                 model=None):
         if not isinstance(dynamics, AbstractDynamics):
             raise ValueError("Contact needs a jaxdyn formulation (AbstractDynamics), got "
                              f"{type(dynamics).__name__}.")
@@ -351,6 +355,23 @@ class Contact(AbstractDynamics):
     def form_accelerations(self, t, q, u, p=None, *, small):
         return self.form_rates_and_accelerations(t, q, u, p, small=small)[1:]
 
+    @property
+    def _articulated(self) -> RigidBodyTree | None:
+        """The tree whose articulated-body algorithm takes the contact forces, when the system
+        in contact is one (also driven), else None."""
+        inner = self.dynamics
+        if isinstance(inner, Controlled):
+            inner = inner.dynamics
+        return inner.tree if isinstance(inner, ArticulatedBody) else None
+
+    @property
+    def equations_in_straight_line(self) -> bool:
+        """False for a tree, whose contact forces join the articulated-body algorithm as
+        array operations (not straight-line code): a solver's stages then run in a loop, not
+        written out 13 times over (two balls on the ground: 47 s to compile written out, 5 s
+        as a loop)."""
+        return self._articulated is None and self.dynamics.equations_in_straight_line
+
     def form_rates_and_accelerations(self, t, q, u, p=None, *, small):
         """(q̇ with ξ̇, u̇, singular, nonfinite), the contacts formed once for both."""
         t = jnp.asarray(t, q.dtype)
@@ -358,13 +379,11 @@ class Contact(AbstractDynamics):
         _, _, rate, _, _, forces = self._contacts(t, q, u, p)
         rates = jnp.concatenate([self.dynamics.coordinate_rates(t, system_q, u, p),
                                  rate.reshape(-1)])
-        inner = self.dynamics
-        if isinstance(inner, Controlled) and isinstance(inner.dynamics, ArticulatedBody):
-            forces, tree = forces + inner.applied(t, system_q, u, p), inner.dynamics.tree
-        elif isinstance(inner, ArticulatedBody):
-            tree = inner.tree
-        else:
+        tree = self._articulated
+        if tree is None:
             return rates, *accelerations_from_equations(self, t, q, u, p, small=small)
+        if isinstance(self.dynamics, Controlled):
+            forces = forces + self.dynamics.applied(t, system_q, u, p)
         # The articulated-body algorithm with the contact forces joining the joint forces.
         return rates, *articulated_body_algorithm(tree.merge_fixed(), t, system_q, u, p,
                                                   applied=forces)
@@ -379,7 +398,7 @@ class Contact(AbstractDynamics):
         operations would then each run and compile on their own)."""
         q, u = check_vector(q, "q"), check_vector(u, "u")
         system_q, _ = self.split_coordinates(q)
-        points = [c.body(system_q, p) for c in self.points if callable(c.body)]
+        points = [c.body(system_q, p) for c in _members(self.points) if callable(c.body)]
         where = points[0] if points else jnp.zeros(3, q.dtype)
         law = [_value(x, p) for x in (self.model.stiffness, self.model.dissipation,
                                       self.model.friction)]

@@ -11,7 +11,10 @@ pointing out of it. For a sphere:
     velocity of the body's material point at x_C:  v_C = v_c + ω × (x_C − c),
 
 with ω the link's angular velocity (zero for a point of a system that is not a tree, whose
-spheres then slide without rolling). g is differentiable everywhere: it is not clamped where
+spheres then slide without rolling). Two spheres c₁, c₂ (`ContactPair`) touch each other
+with g = |c₁ − c₂| − r₁ − r₂, n = (c₁ − c₂)/|c₁ − c₂|, x_C the midpoint of their surfaces'
+nearest points and v_C the first's material point's velocity there relative to the second's.
+g is differentiable everywhere: it is not clamped where
 the bodies are apart, so that gradients see how far they are from touching (the force laws of
 `jaxdyn._form.contact` are zero there, not the distance).
 
@@ -126,6 +129,33 @@ class ContactPoint(eqx.Module):
                              f"{self.radius}.")
 
 
+class ContactPair(eqx.Module):
+    """Two spheres that may touch each other: body–body contact (two links of a tree, a link
+    and a function of q, or two points of any system).
+
+    Their gap is g = |c₁ − c₂| − r₁ − r₂, the normal n = (c₁ − c₂)/|c₁ − c₂| points from the
+    second towards the first, and the contact point is the midpoint of the surfaces' nearest
+    points. The contact law's force F acts on the first sphere there and −F on the second
+    (Newton's third law at one point): momentum and angular momentum pass between the bodies
+    and are not created.
+
+    **Arguments:** `first`, `second`: `jaxdyn.ContactPoint`s; `name`: a label for records.
+    """
+
+    first: ContactPoint
+    second: ContactPoint
+    name: str | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        if not (isinstance(self.first, ContactPoint) and isinstance(self.second, ContactPoint)):
+            raise ValueError("A ContactPair joins two jaxdyn.ContactPoint, got "
+                             f"{type(self.first).__name__} and {type(self.second).__name__}.")
+        key = [(c.body, c.point, c.radius) for c in (self.first, self.second)]
+        if key[0] == key[1]:
+            raise ValueError(f"A ContactPair joins two different spheres, got {self.first} "
+                             "twice.")
+
+
 def box_corners(link: str, size, centre=(0.0, 0.0, 0.0), rotation=None) -> list[ContactPoint]:
     """The eight corners of a box of edge lengths `size` (3,), centred at `centre` in the
     link's axes (turned by `rotation` (3, 3) if given), as contact points: a box on flat ground
@@ -139,8 +169,9 @@ def box_corners(link: str, size, centre=(0.0, 0.0, 0.0), rotation=None) -> list[
 
 class ContactKinematics(eqx.Module):
     """Each contact's gap g (k,), normal n (k, 3), contact point x_C (k, 3), the velocity
-    v_C (k, 3) of the body's material point there and its Jacobian J (k, 3, m) along the
-    speeds, v_C = J u, all in world axes."""
+    v_C (k, 3) of the body's material point there (of the first sphere's relative to the
+    second's, for a pair) and its Jacobian J (k, 3, m) along the speeds, v_C = J u, all in
+    world axes."""
 
     gap: jax.Array
     normal: jax.Array
@@ -163,14 +194,14 @@ def find_tree(dynamics) -> RigidBodyTree | None:
 
 def check_points(points: Sequence[ContactPoint], tree: RigidBodyTree | None):
     """Trace-time checks of the contact points against the system."""
-    if isinstance(points, ContactPoint):
+    if isinstance(points, (ContactPoint, ContactPair)):
         points = (points,)
     points = tuple(points)
-    if not points or not all(isinstance(c, ContactPoint) for c in points):
-        raise ValueError("points must be a non-empty sequence of jaxdyn.ContactPoint, got "
-                         f"{points!r}.")
+    if not points or not all(isinstance(c, (ContactPoint, ContactPair)) for c in points):
+        raise ValueError("points must be a non-empty sequence of jaxdyn.ContactPoint or "
+                         f"jaxdyn.ContactPair, got {points!r}.")
     names = None if tree is None else [link.name for link in tree.links]
-    for c in points:
+    for c in _members(points):
         if isinstance(c.body, str):
             if names is None:
                 raise ValueError(f"The contact point on {c.body!r} names a link, but the system "
@@ -183,10 +214,47 @@ def check_points(points: Sequence[ContactPoint], tree: RigidBodyTree | None):
     return points
 
 
+def _members(points):
+    """The spheres of `points`, pairs opened: what the kinematics moves."""
+    for c in points:
+        yield from ((c.first, c.second) if isinstance(c, ContactPair) else (c,))
+
+
+def _sphere_motion(c, tree, poses, kinematics, t, q, u, p):
+    """(centre c (3,), J_ω (3, m), J_c (3, m)) of one sphere: its centre and the Jacobians of
+    its body's angular velocity and of its centre's velocity along the speeds."""
+    dtype, m = q.dtype, u.shape[0]
+    if isinstance(c.body, str):
+        rotations, origins, index = poses
+        chain, _, u_index = ancestry(tree, index[c.body])
+        links = RigidBodyTree([tree.links[k] for k in chain])
+        rotation, origin = rotations[np.array(chain)], origins[np.array(chain)]
+        centre = origin[-1] + rotation[-1] @ jnp.asarray(c.point, dtype)
+        omega, velocity = world_subspaces(links, rotation, origin, centre)
+        full = jnp.zeros((2, 3, m), dtype).at[:, :, u_index].set(
+            jnp.stack([omega.T, velocity.T]))
+        return centre, full[0], full[1]
+    centre = jnp.asarray(c.body(q, p), dtype)
+    if centre.shape != (3,):
+        raise ValueError(f"A contact point's function c(q, p) must return a 3-vector in the "
+                         f"world, got shape {centre.shape}.")
+    # (∂c/∂q) K column by column: K is linear in u
+    jacobian = jax.jacfwd(lambda u: jax.jvp(
+        lambda q: jnp.asarray(c.body(q, p), dtype), (q,), (kinematics(t, q, u, p),))[1])(u)
+    return centre, jnp.zeros((3, m), dtype), jacobian  # (a point: no turning)
+
+
+def _at(motion, x):
+    """The Jacobian of the velocity of the body's material point at x: v_x = v_c + ω × (x − c),
+    column by column J_x = J_c − [x − c]× J_ω."""
+    centre, omega, jacobian = motion
+    return jacobian + jnp.cross(omega, (x - centre)[:, None], axisa=0, axisb=0, axisc=0)
+
+
 def contact_kinematics(points, terrain: AbstractTerrain, tree, kinematics, t, q, u, p
                        ) -> ContactKinematics:
     """Gaps, normals, contact points, their velocities and Jacobians (module docstring) at one
-    state.
+    state, a pair's relative to its second sphere.
 
     A point on a link moves with the speeds of the joints from the root to its link: its
     Jacobian's columns are those speeds' motion subspaces carried to the point (Featherstone,
@@ -194,40 +262,33 @@ def contact_kinematics(points, terrain: AbstractTerrain, tree, kinematics, t, q,
     the other speeds; no derivative is taken. A point given as a function c(q, p) has the
     Jacobian (∂c/∂q) K (`kinematics` gives q̇ = K(t, q, p) u, linear in u)."""
     dtype = q.dtype
-    m = u.shape[0]
-    centres, jacobians, turning = [], [], []
-    if any(isinstance(c.body, str) for c in points):
-        index = {link.name: i for i, link in enumerate(tree.links)}
-        rotations, origins = tree.link_poses(t, q, p)
+    poses = None
+    if any(isinstance(c.body, str) for c in _members(points)):
+        poses = (*tree.link_poses(t, q, p), {link.name: i for i, link in enumerate(tree.links)})
+    gaps, normals, positions, jacobians = [], [], [], []
     for c in points:
-        if isinstance(c.body, str):
-            chain, _, u_index = ancestry(tree, index[c.body])
-            links = RigidBodyTree([tree.links[k] for k in chain])
-            rotation, origin = rotations[np.array(chain)], origins[np.array(chain)]
-            centre = origin[-1] + rotation[-1] @ jnp.asarray(c.point, dtype)
-            omega, velocity = world_subspaces(links, rotation, origin, centre)
-            full = jnp.zeros((2, 3, m), dtype).at[:, :, u_index].set(
-                jnp.stack([omega.T, velocity.T]))
-            centres.append(centre)
-            turning.append(full[0])
-            jacobians.append(full[1])
+        if isinstance(c, ContactPair):
+            a, b = (_sphere_motion(s, tree, poses, kinematics, t, q, u, p)
+                    for s in (c.first, c.second))
+            d = a[0] - b[0]
+            square = d @ d
+            # (a safe norm: concentric spheres have no normal, and take +z)
+            dist = jnp.sqrt(jnp.where(square > 0, square, 1.0))
+            n = jnp.where(square > 0, d / dist, jnp.array([0.0, 0.0, 1.0], dtype))
+            dist = jnp.where(square > 0, dist, 0.0)
+            # the midpoint of the two surfaces' nearest points, where the forces act
+            x = 0.5 * (a[0] - c.first.radius * n + b[0] + c.second.radius * n)
+            gaps.append(dist - c.first.radius - c.second.radius)
+            jacobians.append(_at(a, x) - _at(b, x))
         else:
-            centre = jnp.asarray(c.body(q, p), dtype)
-            if centre.shape != (3,):
-                raise ValueError(f"A contact point's function c(q, p) must return a 3-vector "
-                                 f"in the world, got shape {centre.shape}.")
-            # (∂c/∂q) K column by column: K is linear in u
-            jacobian = jax.jacfwd(lambda u: jax.jvp(
-                lambda q: jnp.asarray(c.body(q, p), dtype), (q,),
-                (kinematics(t, q, u, p),))[1])(u)
-            centres.append(centre)
-            turning.append(jnp.zeros((3, m), dtype))  # (a point: no turning)
-            jacobians.append(jacobian)
-    centre, omega, jacobian = jnp.stack(centres), jnp.stack(turning), jnp.stack(jacobians)
-    distance, normal = jax.vmap(lambda x: terrain.distance_and_normal(x, p))(centre)
-    radius = jnp.asarray(np.array([c.radius for c in points]), dtype)
-    arm = -radius[:, None] * normal  # from the centre to the contact point
-    # v_C = v_c + ω × arm, column by column: J_C = J_c − [arm]× J_ω
-    jacobian = jacobian + jnp.cross(omega, arm[:, :, None], axisa=1, axisb=1, axisc=1)
-    return ContactKinematics(gap=distance - radius, normal=normal, position=centre + arm,
-                             velocity=jacobian @ u, jacobian=jacobian)
+            motion = _sphere_motion(c, tree, poses, kinematics, t, q, u, p)
+            distance, n = terrain.distance_and_normal(motion[0], p)
+            x = motion[0] - c.radius * n
+            gaps.append(distance - c.radius)
+            jacobians.append(_at(motion, x))
+        normals.append(n)
+        positions.append(x)
+    jacobian = jnp.stack(jacobians)
+    return ContactKinematics(gap=jnp.stack(gaps), normal=jnp.stack(normals),
+                             position=jnp.stack(positions), velocity=jacobian @ u,
+                             jacobian=jacobian)
