@@ -65,6 +65,7 @@ from ._system.contact import (
     HeightField as HeightField,
     Plane as Plane,
     box_corners as box_corners,
+    capsule_ends as capsule_ends,
 )
 from ._system.urdf import urdf_contact_points as urdf_contact_points
 from ._linearisation import (

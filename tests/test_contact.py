@@ -219,6 +219,33 @@ def test_two_balls_collide_conserving_momentum_with_hertz_impact():
     assert_close(after[1], before[1], rtol=0, atol=1e-10)
 
 
+def test_a_capsule_from_urdf_falls_and_lies_flat_on_its_two_ends(tmp_path):
+    """A rod with a capsule collision (URDF's `<capsule>` extension, as Drake writes it),
+    dropped tilted, comes to lie flat: its two end spheres carry half its weight each, its
+    axis level at the capsule's radius less the static penetration."""
+    r, length, m = 0.02, 0.3, 0.5
+    inertia = m * (3 * r * r + length**2) / 12
+    (tmp_path / "rod.urdf").write_text(f"""<robot name="rod"><link name="rod">
+      <inertial><mass value="{m}"/><inertia ixx="{inertia}" iyy="{inertia}" izz="1e-4"
+        ixy="0" ixz="0" iyz="0"/></inertial>
+      <collision><origin xyz="0 0 0" rpy="0 1.5707963267948966 0"/>
+        <geometry><capsule radius="{r}" length="{length}"/></geometry></collision>
+    </link></robot>""")
+    tree, p = jaxdyn.from_urdf(tmp_path / "rod.urdf", floating=True)
+    ends = jaxdyn.urdf_contact_points(tmp_path / "rod.urdf")
+    assert len(ends) == 2 and all(c.radius == r for c in ends)
+    assert_close(np.abs(ends[0].point), [length / 2, 0.0, 0.0], atol=1e-15, rtol=0)
+    scene = jaxdyn.Contact(jaxdyn.ArticulatedBody(tree), ends,
+                           model=jaxdyn.HuntCrossley(K, 20.0, friction=MU))
+    tilt = 0.3  # about y: one end 4.4 cm below the other
+    q0 = np.array([0.0, 0.0, 0.1, np.cos(tilt / 2), 0.0, np.sin(tilt / 2), 0.0])
+    sol = jaxdyn.simulate(scene, q0, np.zeros(6), p, t1=2.0, ts=np.array([2.0]),
+                          save=("q", "contact"), **TOL)
+    sink = (m * G / 2 / K) ** (2 / 3)
+    assert_close(sol.contact.normal_force[-1], [m * G / 2] * 2, rtol=1e-6)
+    assert_close(sol.q[-1, 2], r - sink, rtol=1e-6)
+
+
 def test_contact_errors():
     """Bad scenes are refused at construction, naming the problem."""
     tree = jaxdyn.RigidBodyTree([jaxdyn.Link("box", jaxdyn.Free(), mass=1.0,

@@ -167,6 +167,23 @@ def box_corners(link: str, size, centre=(0.0, 0.0, 0.0), rotation=None) -> list[
             for k, s in enumerate(signs)]
 
 
+def capsule_ends(link: str, radius: float, length: float, centre=(0.0, 0.0, 0.0),
+                 rotation=None) -> list[ContactPoint]:
+    """A capsule of `radius` whose axis, of `length` between the centres of its two caps, runs
+    along z of a frame at `centre` (turned by `rotation` (3, 3)) in the link's axes, as the
+    two spheres at the ends of its axis. Against a plane the two spheres are the capsule
+    exactly: the signed distance is linear along the axis, so its least value over the axis
+    is at an end (a capsule lying flat touches at both, whose forces carry it). Against a
+    curved terrain they miss the contact of the axis's middle with a crest."""
+    centre = np.asarray(centre, float)
+    rotation = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    if not (np.isfinite(length) and length >= 0):
+        raise ValueError(f"A capsule's length must be finite and ≥ 0, got {length}.")
+    axis = rotation @ np.array([0.0, 0.0, length / 2])
+    return [ContactPoint(link, centre + sign * axis, radius, name=f"{link}:capsule{k}")
+            for k, sign in enumerate((-1.0, 1.0))]
+
+
 class ContactKinematics(eqx.Module):
     """Each contact's gap g (k,), normal n (k, 3), contact point x_C (k, 3), the velocity
     v_C (k, 3) of the body's material point there (of the first sphere's relative to the

@@ -51,13 +51,7 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
     Joints: revolute and continuous → `Revolute` (an angle), prismatic → `Prismatic`, fixed →
     `Fixed`, floating → `Free`, planar (about the joint's z axis) → `Planar`.
     """
-    try:
-        import yourdfpy
-    except ImportError as error:  # an optional dependency
-        raise ImportError("URDF import needs yourdfpy: pip install 'jaxdyn[urdf]'.") from error
-    model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
-                               build_collision_scene_graph=False,
-                               load_collision_meshes=False).robot
+    model, _ = _load(path)
     links = {link.name: link for link in model.links}
     parent_joint = {}
     for joint in model.joints:
@@ -107,6 +101,36 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
     p = {name: {k: jnp.asarray(v) for k, v in d.items()} for name, d in values.items()}
     tree = RigidBodyTree(tree_links, gravity=jnp.asarray(gravity, dtype=float))
     return tree, (p if parameters else None)
+
+
+def _load(path):
+    """(yourdfpy's robot, {(link, index of its collision): (radius, length)} of its capsules).
+
+    URDF has no capsule; files written for Drake or sdformat carry `<capsule radius length>`,
+    which yourdfpy refuses. They are read here and handed to it as cylinders (which
+    `from_urdf` does not use), so that such files load."""
+    import io
+    import xml.etree.ElementTree as ElementTree
+
+    try:
+        import yourdfpy
+    except ImportError as error:  # an optional dependency
+        raise ImportError("URDF import needs yourdfpy: pip install 'jaxdyn[urdf]'.") from error
+    root = ElementTree.parse(str(path)).getroot()
+    capsules = {}
+    for link in root.iter("link"):
+        for k, collision in enumerate(link.findall("collision")):
+            geometry = collision.find("geometry")
+            capsule = None if geometry is None else geometry.find("capsule")
+            if capsule is not None:
+                capsules[link.get("name"), k] = (float(capsule.get("radius")),
+                                                 float(capsule.get("length")))
+                capsule.tag = "cylinder"
+    file = io.BytesIO(ElementTree.tostring(root))
+    model = yourdfpy.URDF.load(file, load_meshes=False, build_scene_graph=False,
+                               build_collision_scene_graph=False,
+                               load_collision_meshes=False).robot
+    return model, capsules
 
 
 def _inertial(link):
@@ -172,9 +196,10 @@ def example_robot_urdf(name: str) -> str:
 
 def urdf_contact_points(path, links=None) -> list:
     """Contact points from a URDF file's collision geometry, for `jaxdyn.Contact`:
-    a sphere → a `ContactPoint` of its radius at its centre; a box → its eight corners.
-    Cylinders and meshes are not taken (give their points yourself, e.g. `jaxdyn.box_corners`
-    for a body's bounding box).
+    a sphere → a `ContactPoint` of its radius at its centre; a capsule (`<capsule radius
+    length>`, an extension of URDF that Drake and sdformat read) → the spheres at the ends of
+    its axis (`jaxdyn.capsule_ends`); a box → its eight corners. Cylinders and meshes are not
+    taken (give their points yourself, e.g. `jaxdyn.box_corners` for a body's bounding box).
 
     **Arguments:** `path`, the .urdf file; `links`, the names of the links whose geometry to
     take (default every link), e.g. a legged robot's feet.
@@ -183,13 +208,9 @@ def urdf_contact_points(path, links=None) -> list:
 
         feet = jaxdyn.urdf_contact_points(path, links=["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"])
     """
-    import yourdfpy
+    from .contact import ContactPoint, box_corners, capsule_ends
 
-    from .contact import ContactPoint, box_corners
-
-    model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
-                               build_collision_scene_graph=False,
-                               load_collision_meshes=False).robot
+    model, capsules = _load(path)
     names = [link.name for link in model.links]
     for name in links or ():
         if name not in names:
@@ -198,7 +219,7 @@ def urdf_contact_points(path, links=None) -> list:
     for link in model.links:
         if links is not None and link.name not in links:
             continue
-        for collision in link.collisions:
+        for k, collision in enumerate(link.collisions):
             origin = np.eye(4) if collision.origin is None else np.asarray(collision.origin)
             rotation, centre = origin[:3, :3], origin[:3, 3]
             geometry = collision.geometry
@@ -207,7 +228,9 @@ def urdf_contact_points(path, links=None) -> list:
                                            name=link.name))
             elif geometry.box is not None:
                 points += box_corners(link.name, geometry.box.size, centre, rotation)
+            elif (link.name, k) in capsules:
+                points += capsule_ends(link.name, *capsules[link.name, k], centre, rotation)
     if links is not None and not points:
-        raise ValueError(f"The links {list(links)} have no collision spheres or boxes in "
-                         "the URDF file: give their contact points yourself.")
+        raise ValueError(f"The links {list(links)} have no collision spheres, capsules or "
+                         "boxes in the URDF file: give their contact points yourself.")
     return points
