@@ -1,7 +1,7 @@
 """Compliant contact (`jaxdyn.Contact`, `jaxdyn.HuntCrossley`) against closed forms: a block
 sliding to rest, held on a slope by static friction and sliding down a steeper one, a ball
-rolling without slipping, resting forces against the weight, and derivatives against finite
-differences."""
+rolling without slipping, resting forces against the weight, two balls colliding (Hertz's
+impact, momentum), a capsule lying flat, and derivatives against finite differences."""
 
 import functools
 import math

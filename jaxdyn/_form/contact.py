@@ -208,7 +208,7 @@ class Contact(AbstractDynamics):
       given as functions c(q, p)).
     - `points`: a sequence of `jaxdyn.ContactPoint` (spheres on links, or functions of q)
       touching the terrain, and of `jaxdyn.ContactPair` (two spheres touching each other);
-      `jaxdyn.urdf_contact_points` reads a URDF's collision spheres and boxes.
+      `jaxdyn.urdf_contact_points` reads a URDF's collision spheres, capsules and boxes.
     - `terrain`: a `jaxdyn.Plane` (default: the ground z = 0) or `jaxdyn.HeightField`.
     - `model`: the contact law, a `jaxdyn.HuntCrossley`.
 
