@@ -21,10 +21,18 @@ Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0]
 """
 
 import argparse
+import os
 import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
+
+# XLA's CPU runtime can wedge while a large vmapped batch finishes: every thread waits, none
+# works, and reading the result never returns (twice here at 1024 robots, after 5–6 minutes
+# of CPU time; jax-ml/jax#25861). Its multi-threaded Eigen pool is the part known to wedge:
+# both libraries run without it (the same flag for both, so the comparison stays fair).
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                           + " --xla_cpu_multi_thread_eigen=false").strip()
 
 import jax
 
@@ -177,8 +185,12 @@ def main():
         runs["MJX Euler 2 ms"] = mjx_run(model, seconds)
     except ImportError as error:
         print(f"(MJX not installed: {error}; pip install -e '.[benchmarks]')")
+    print(f"{'':22s} {'first':>7s} {'first':>7s} {'standing':>9s} {'trotting':>9s} "
+          f"{'batch':>10s}  settled vertical force")
+    print(f"{'':22s} {'one':>7s} {'batch':>7s} {'ms/s':>9s} {'ms/s':>9s} {'ms/s/state':>10s}"
+          f"  one, batch median (N)    steps", flush=True)
     rows = []
-    for name, run in runs.items():
+    for name, run in runs.items():  # (each row printed as soon as it is measured)
         one = jax.jit(run)
         many = jax.jit(jax.vmap(run, in_axes=(0, None)))
         first = timed(one, q0s[0], 0.0)
@@ -186,17 +198,15 @@ def main():
         single = min(timed(one, q0s[0], 0.0) for _ in range(3))
         trot = min(timed(one, upright.at[2].set(standing_height), 0.2) for _ in range(2))
         first_batch = timed(many, q0s, 0.0)
-        per_state = timed(many, q0s, 0.0) / batch
-        qs, forces, _ = many(q0s, 0.0)
+        start = time.perf_counter()
+        qs, forces, _ = jax.block_until_ready(many(q0s, 0.0))
+        per_state = (time.perf_counter() - start) / batch
         rows.append((name, first, first_batch, single / seconds, trot / seconds,
                      per_state / seconds, float(force), float(jnp.median(forces)), int(steps)))
-    print(f"{'':22s} {'first':>7s} {'first':>7s} {'standing':>9s} {'trotting':>9s} "
-          f"{'batch':>10s}  settled vertical force")
-    print(f"{'':22s} {'one':>7s} {'batch':>7s} {'ms/s':>9s} {'ms/s':>9s} {'ms/s/state':>10s}"
-          f"  one, batch median (N)    steps")
-    for name, first, first_batch, single, trot, per_state, f1, fb, steps in rows:
+        name, first, first_batch, single, trot, per_state, f1, fb, steps = rows[-1]
         print(f"{name:22s} {first:6.1f}s {first_batch:6.1f}s {1e3 * single:9.2f} "
-              f"{1e3 * trot:9.2f} {1e3 * per_state:10.3f}  {f1:8.2f} {fb:8.2f}     {steps}")
+              f"{1e3 * trot:9.2f} {1e3 * per_state:10.3f}  {f1:8.2f} {fb:8.2f}     {steps}",
+              flush=True)
     if len(rows) == 2:
         print(f"\nratio jaxdyn / MJX per state in the batch: {rows[0][5] / rows[1][5]:.2f}; "
               f"one robot standing: {rows[0][3] / rows[1][3]:.2f}")
