@@ -21,20 +21,19 @@ Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0]
 """
 
 import argparse
-import os
 import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-# XLA's CPU runtime can wedge while a large vmapped batch finishes: every thread waits, none
-# works, and reading the result never returns (twice here at 1024 robots, after 5–6 minutes
-# of CPU time; jax-ml/jax#25861). Its multi-threaded Eigen pool is the part known to wedge:
-# both libraries run without it (the same flag for both, so the comparison stays fair).
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                           + " --xla_cpu_multi_thread_eigen=false").strip()
-
 import jax
+
+# XLA's CPU runtime can wedge while a large vmapped batch runs: every thread waits on a futex,
+# none works, and reading the result never returns (three times here at 1024 robots, in
+# jaxdyn's batch and in MJX's, also without XLA's multi-threaded Eigen pool). Dispatching
+# synchronously is the known way round (jax-ml/jax#25861); it applies to both libraries alike,
+# and the timings block on every call anyway.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 jax.config.update("jax_enable_x64", True)
 
