@@ -284,8 +284,7 @@ class Contact(AbstractDynamics):
         """(kinematics, F, ξ̇, f_n, F_t, Q): every contact at one state, and the generalized
         active forces Q = Σ J_Cᵀ F along the speeds (v_C = J_C u)."""
         q, deformation = self.split_coordinates(q)
-        kin = contact_kinematics(self.points, self.terrain, find_tree(self.dynamics),
-                                 self.dynamics.coordinate_rates, t, q, u, p)
+        kin = _kinematics(self, t, q, u, p)
         force, rate, normal, friction = self.model.forces(kin, deformation, p)
         generalized = jnp.einsum("kim,ki->m", kin.jacobian, force)
         return kin, force, rate, normal, friction, generalized
@@ -302,8 +301,7 @@ class Contact(AbstractDynamics):
         between two stages; so bounded, a stage meets the contact force and the error
         estimate takes over."""
         system_q, _ = self.split_coordinates(q)
-        kin = contact_kinematics(self.points, self.terrain, find_tree(self.dynamics),
-                                 self.dynamics.coordinate_rates, t, system_q, u, p)
+        kin = _kinematics(self, t, system_q, u, p)
         approach = -jnp.sum(kin.normal * kin.velocity, axis=-1)
         reach = jnp.maximum(kin.gap, 0.0) + APPROACH_DEPTH
         return jnp.min(jnp.where(approach > 0, reach / jnp.where(approach > 0, approach, 1.0),
@@ -422,3 +420,11 @@ class Contact(AbstractDynamics):
 
     def state_constraints(self, t, q, u, p=None):
         return self.dynamics.state_constraints(t, self.split_coordinates(q)[0], u, p)
+
+
+# The contacts' kinematics are asked for at every stage of a step, by the step bound and by the
+# records: traced once per solve (a nested jit, inlined by XLA) rather than once per use.
+@eqx.filter_jit
+def _kinematics(scene, t, q, u, p):
+    return contact_kinematics(scene.points, scene.terrain, find_tree(scene.dynamics),
+                              scene.dynamics.coordinate_rates, t, q, u, p)
