@@ -274,8 +274,7 @@ def equations_of_motion(dynamics: AbstractDynamics, t, q, u, p, factorisation=No
     if factorisation is not None:  # given for systems evaluated as arrays only
         return _equations(dynamics, t, q, u, p, factorisation=factorisation, small=False)
     return unrolled(functools.partial(_straight_line_equations, dynamics), t, q, u, p,
-                    otherwise=functools.partial(_equations, dynamics, factorisation=None,
-                                                small=False),
+                    otherwise=functools.partial(_array_equations, dynamics),
                     chunked=dynamics.batch_in_chunks,
                     max_elements=None if dynamics.equations_in_straight_line else 0)
 
@@ -294,6 +293,12 @@ def straight_line_size(dynamics, t, q, u, p) -> int | None:
 @eqx.filter_jit  # its trace is cached: `fits` and `unrolled` then trace the user's functions once
 def _straight_line_equations(dynamics, t, q, u, p):
     return _equations(dynamics, t, q, u, p, factorisation=None, small=True)
+
+
+@eqx.filter_jit  # its trace is cached: every stage of a step, the step-size controller's first
+# step and the failure checks ask for the equations (ANYmal in contact traced them 5 times)
+def _array_equations(dynamics, t, q, u, p):
+    return _equations(dynamics, t, q, u, p, factorisation=None, small=False)
 
 
 def _equations(dynamics, t, q, u, p, *, factorisation, small):
