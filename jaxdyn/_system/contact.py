@@ -209,7 +209,8 @@ def find_tree(dynamics) -> RigidBodyTree | None:
     return None
 
 
-def check_points(points: Sequence[ContactPoint], tree: RigidBodyTree | None):
+def check_points(points: Sequence[ContactPoint | ContactPair] | ContactPoint | ContactPair,
+                 tree: RigidBodyTree | None) -> tuple[ContactPoint | ContactPair, ...]:
     """Trace-time checks of the contact points against the system."""
     if isinstance(points, (ContactPoint, ContactPair)):
         points = (points,)

@@ -123,8 +123,11 @@ def _load(path):
             geometry = collision.find("geometry")
             capsule = None if geometry is None else geometry.find("capsule")
             if capsule is not None:
-                capsules[link.get("name"), k] = (float(capsule.get("radius")),
-                                                 float(capsule.get("length")))
+                radius, length = capsule.get("radius"), capsule.get("length")
+                if radius is None or length is None:
+                    raise ValueError(f"A <capsule> of link {link.get('name')!r} lacks its "
+                                     "radius or length attribute.")
+                capsules[link.get("name"), k] = (float(radius), float(length))
                 capsule.tag = "cylinder"
     file = io.BytesIO(ElementTree.tostring(root))
     model = yourdfpy.URDF.load(file, load_meshes=False, build_scene_graph=False,
