@@ -671,6 +671,10 @@ def _setup(dynamics, experiments, params, filter_spec, parametrisation, observe,
     problem, latent = _problem(dynamics, experiments, params, dtype, filter_spec,
                                parametrisation, observe, fit_initial_states, shooting,
                                simulate_options, adjoint, horizons)
+    # Weakly typed guesses (`jnp.asarray(0.3)`, Python numbers) come back from the first step
+    # strongly typed, and the step would compile a second time for them (13 s for a box's
+    # friction): the iterate is strongly typed from the start.
+    latent = _strongly_typed(latent)
     fn = scalar_loss
     if least_squares:
         fn = (least_squares_residuals_forward if options["jac"] == "fwd"
@@ -808,9 +812,17 @@ def _in_precision(state, latent):
     they would promote the damped Gauss–Newton operator to float64, which lineax rejects."""
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(latent)
                               if eqx.is_inexact_array(x)])
-    return jax.tree_util.tree_map(
+    return _strongly_typed(jax.tree_util.tree_map(
         lambda x: x.astype(dtype) if eqx.is_inexact_array(x) and x.dtype != dtype
-        and jnp.issubdtype(x.dtype, jnp.floating) else x, state)
+        and jnp.issubdtype(x.dtype, jnp.floating) else x, state))
+
+
+def _strongly_typed(tree):
+    """`tree` with its weakly typed arrays made strong (the same dtype): a jitted step whose
+    output types differ from its input's only in weak types compiles again for its output."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, dtype=x.dtype) if getattr(x, "weak_type", False) else x,
+        tree)
 
 
 @eqx.filter_jit
