@@ -243,11 +243,18 @@ def _sphere_motion(c, tree, poses, kinematics, t, q, u, p):
     its body's angular velocity and of its centre's velocity along the speeds."""
     dtype, m = q.dtype, u.shape[0]
     if isinstance(c.body, str):
-        rotations, origins, index = poses
-        chain, _, u_index = ancestry(tree, index[c.body])
-        links = RigidBodyTree([tree.links[k] for k in chain])
+        # the point on the moving body its link is welded to (`merge_fixed`): the poses are
+        # those of the moving bodies only (ANYmal-C: 13, not 78 links)
+        merged, rotations, origins, index, welded = poses
+        body, offset_rotation, offset = welded[c.body]
+        point = offset + offset_rotation @ np.asarray(c.point)
+        if body is None:  # welded to the world: it does not move
+            zero = jnp.zeros((3, m), dtype)
+            return jnp.asarray(point, dtype), zero, zero
+        chain, _, u_index = ancestry(merged, index[body])
+        links = RigidBodyTree([merged.links[k] for k in chain])
         rotation, origin = rotations[np.array(chain)], origins[np.array(chain)]
-        centre = origin[-1] + rotation[-1] @ jnp.asarray(c.point, dtype)
+        centre = origin[-1] + rotation[-1] @ jnp.asarray(point, dtype)
         omega, velocity = world_subspaces(links, rotation, origin, centre)
         full = jnp.zeros((2, 3, m), dtype).at[:, :, u_index].set(
             jnp.stack([omega.T, velocity.T]))
@@ -276,13 +283,16 @@ def contact_kinematics(points, terrain: AbstractTerrain, tree, kinematics, t, q,
 
     A point on a link moves with the speeds of the joints from the root to its link: its
     Jacobian's columns are those speeds' motion subspaces carried to the point (Featherstone,
-    2008, §4.6; `world_subspaces`), from one pass of the tree's link poses, and zero for
-    the other speeds; no derivative is taken. A point given as a function c(q, p) has the
+    2008, §4.6; `world_subspaces`), from one pass of the poses of the tree's moving bodies
+    (links on fixed joints welded to them, `RigidBodyTree.merge_fixed`), and zero for the other
+    speeds; no derivative is taken. A point given as a function c(q, p) has the
     Jacobian (∂c/∂q) K (`kinematics` gives q̇ = K(t, q, p) u, linear in u)."""
     dtype = q.dtype
     poses = None
     if any(isinstance(c.body, str) for c in _members(points)):
-        poses = (*tree.link_poses(t, q, p), {link.name: i for i, link in enumerate(tree.links)})
+        merged = tree.merge_fixed()
+        poses = (merged, *merged.link_poses(t, q, p),
+                 {link.name: i for i, link in enumerate(merged.links)}, tree.welded_bodies())
     gaps, normals, positions, jacobians = [], [], [], []
     for c in points:
         if isinstance(c, ContactPair):
