@@ -155,6 +155,36 @@ def test_gradient_through_sliding_against_finite_differences():
     assert_close(gradient, -G * 0.2**2 / 2, rtol=2e-2)
 
 
+def test_two_particles_collide_by_lagrange_with_exact_derivatives():
+    """The head-on elastic impact of two point masses (Lagrange's equations, the spheres given
+    as functions of q): the exit speeds of an elastic impact, and the derivative of where the
+    second ends up with respect to the stiffness k (which sets the contact time) against a
+    central difference."""
+    m1, m2, r, v = 1.0, 0.5, 0.05, 2.0
+    particles = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * (m1 * qd[:3] @ qd[:3]
+                                                          + m2 * qd[3:] @ qd[3:]),
+                                  lambda q, p: 0.0 * q[0])
+    pair = jaxdyn.ContactPair(jaxdyn.ContactPoint(lambda q, p: q[:3], radius=r),
+                              jaxdyn.ContactPoint(lambda q, p: q[3:], radius=r))
+    scene = jaxdyn.Contact(particles, [pair], model=jaxdyn.HuntCrossley(
+        lambda p: p["k"], 0.0, friction=0.0))
+    q0 = jnp.array([-0.2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    u0 = jnp.array([v, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+    def solve(k):
+        return jaxdyn.simulate(scene, q0, u0, {"k": k}, t1=0.1, ts=jnp.array([0.1]),
+                               save=("q", "u"), rtol=1e-11, atol=1e-11)
+
+    sol = solve(K)
+    assert_close(sol.u[-1, [0, 3]], [(m1 - m2) / (m1 + m2) * v, 2 * m1 / (m1 + m2) * v],
+                 rtol=1e-8)
+    position = lambda k: solve(k).q[-1, 3]  # noqa: E731
+    gradient = jax.grad(position)(jnp.asarray(K))
+    h = 1e-3 * K
+    assert_close(gradient, (position(K + h) - position(K - h)) / (2 * h), rtol=1e-5)
+    assert abs(float(gradient)) > 0  # (the contact time, and so the exit, depends on k)
+
+
 def _rotation(quaternion):
     """R from a unit quaternion (w, x, y, z), written out (the numbers a reader checks)."""
     w, x, y, z = quaternion
