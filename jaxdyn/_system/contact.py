@@ -106,7 +106,8 @@ class ContactPoint(eqx.Module):
       function c(q, p) → (3,) giving the centre in the world (any system).
     - `point`: the centre in the link's axes (default its origin); only with a link's name.
     - `radius`: r ≥ 0 (default 0: a point).
-    - `name`: a label for records (default the link's name).
+    - `name`: a label for the user's bookkeeping (records list contacts in the order given,
+      not by name).
 
     Several points may share a link: a box's eight corners, a foot's sole.
     """
@@ -139,12 +140,12 @@ class ContactPair(eqx.Module):
     (Newton's third law at one point): momentum and angular momentum pass between the bodies
     and are not created.
 
-    **Arguments:** `first`, `second`: `jaxdyn.ContactPoint`s; `name`: a label for records.
+    **Arguments:** `first`, `second`: `jaxdyn.ContactPoint`s. Records list a pair where it
+    stands in the scene's points.
     """
 
     first: ContactPoint
     second: ContactPoint
-    name: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not (isinstance(self.first, ContactPoint) and isinstance(self.second, ContactPoint)):
