@@ -53,6 +53,7 @@ from ._integrate import simulate as simulate
 from ._integrate.events import EventRecord as EventRecord
 from ._events import AbstractEvent as AbstractEvent, Event as Event
 from ._form.impact import UnilateralContact as UnilateralContact
+from ._form.rigid_contact import RigidContact as RigidContact
 from ._form.contact import (
     Contact as Contact,
     ContactRecord as ContactRecord,

@@ -53,6 +53,31 @@ class AbstractEvent(eqx.Module):
     def contact_rows(self, dynamics, t, q, u, p):
         """None, or (J (k, m), b (k,)) such that a guard at rest is held by J u̇ + b = 0."""
 
+    def held_rows(self, dynamics, t, q, u, p, resting, reference):
+        """None, or the rows (E (r, m), W (r, m), b (r,), active (r,)) held while the guards
+        `resting` rest: E u̇ + b = 0 on the `active` rows, by the generalized forces Wᵀ λ.
+        By default one row per guard, E = W = J of `contact_rows` (an ideal constraint);
+        Coulomb friction in sliding makes W differ from E (the friction force follows the
+        normal force). `reference` is what the event remembers of its segment's start."""
+        rows = self.contact_rows(dynamics, t, q, u, p)
+        if rows is None:
+            return None
+        return rows[0], rows[0], rows[1], resting
+
+    def held_values(self, dynamics, t, q, u, p, forces, resting, reference):
+        """The guards with the multipliers λ in place of those held at rest (a contact is
+        released when its normal force falls through zero)."""
+        return jnp.where(resting, forces, self.guards(dynamics, t, q, u, p))
+
+    def held_forces(self, forces, resting, p):
+        """The force each guard carries at rest (k,), from the multipliers of `held_rows`."""
+        return forces
+
+    def reference(self, dynamics, t, q, u, p, resting):
+        """What the event remembers of a segment's start (None by default): a sliding
+        contact's direction of slip."""
+        return None
+
 
 class Event(AbstractEvent):
     r"""An event given by its guard and its reset map.
@@ -127,6 +152,29 @@ def constraint_response(dynamics, t, q, u, p, jacobian):
     kkt = jnp.block([[mass_matrix, a.T], [a, jnp.zeros((c, c), a.dtype)]])
     rhs = jnp.concatenate([jacobian.T, jnp.zeros((c, k), a.dtype)])
     return jnp.linalg.solve(kkt, rhs)[:m]
+
+
+def hold(dynamics, t, q, u, p, free, rows):
+    """(u̇, λ): the accelerations `free` corrected by the forces Wᵀ λ that hold the active
+    rows E u̇ + b = 0 of `rows` = (E, W, b, active) (λ = 0 on the others),
+
+        (E X) λ = −(E u̇_free + b),   u̇ = u̇_free + X λ,   M X = Wᵀ,
+
+    with X from `constraint_response` (within a constrained formulation's own constraints).
+    E X is the Delassus matrix (not symmetric where W ≠ E); a regularisation at round-off keeps
+    it invertible for redundant contacts (a box flat on four corners), whose λ is then the
+    one of least norm and u̇ unique."""
+    rows_e, rows_w, bias, active = rows
+    response = constraint_response(dynamics, t, q, u, p, rows_w)
+    delassus = rows_e @ response
+    r = active.shape[0]
+    scale = jnp.maximum(jnp.max(jnp.abs(jnp.diagonal(delassus))), jnp.finfo(u.dtype).tiny)
+    eye = jnp.eye(r, dtype=u.dtype)
+    both = active[:, None] & active[None, :]
+    delassus = jnp.where(both, delassus + 16 * jnp.finfo(u.dtype).eps * scale * eye, eye)
+    forces = jnp.where(active, jnp.linalg.solve(
+        delassus, jnp.where(active, -(rows_e @ free + bias), 0.0)), 0.0)
+    return free + response @ forces, forces
 
 
 def check_direction(direction):

@@ -41,6 +41,14 @@ def assert_close(actual, desired, *, rtol, atol=0.0, err_msg=""):
     np.testing.assert_allclose(actual, desired, rtol=rtol, atol=atol, err_msg=err_msg)
 
 
+def rotation_of(quaternion):
+    """R from a unit quaternion (w, x, y, z), written out (the numbers a reader checks)."""
+    w, x, y, z = quaternion
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def central_difference(f: Callable, x, step: float = 1e-6) -> np.ndarray:
     """Central finite-difference Jacobian of `f` at `x` (NumPy arrays in and out).
 

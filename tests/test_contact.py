@@ -13,7 +13,7 @@ import pytest
 
 import jaxdyn
 
-from helpers import assert_close
+from helpers import assert_close, rotation_of
 
 G, MU, K, C = 9.81, 0.5, 1e6, 3.0
 MASS, SIZE = 1.0, (0.2, 0.1, 0.05)
@@ -185,14 +185,6 @@ def test_two_particles_collide_by_lagrange_with_exact_derivatives():
     assert abs(float(gradient)) > 0  # (the contact time, and so the exit, depends on k)
 
 
-def _rotation(quaternion):
-    """R from a unit quaternion (w, x, y, z), written out (the numbers a reader checks)."""
-    w, x, y, z = quaternion
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def test_two_balls_collide_conserving_momentum_with_hertz_impact():
     """Two free balls (1 kg and 0.5 kg, r = 5 cm, no gravity) touch each other
     (`ContactPair`). Head on and elastic (α = μ = 0) their speeds leave as for a perfectly
@@ -233,7 +225,7 @@ def test_two_balls_collide_conserving_momentum_with_hertz_impact():
     def momenta(q, u):
         linear, angular = np.zeros(3), np.zeros(3)
         for i, m in enumerate(masses):
-            turn = _rotation(q[7 * i + 3:7 * i + 7])
+            turn = rotation_of(q[7 * i + 3:7 * i + 7])
             velocity, spin = turn @ u[6 * i:6 * i + 3], turn @ u[6 * i + 3:6 * i + 6]
             linear += m * velocity
             angular += np.cross(q[7 * i:7 * i + 3], m * velocity) + 0.4 * m * r * r * spin

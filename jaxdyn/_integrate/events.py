@@ -18,7 +18,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._dynamics import equations_of_motion
-from .._events import DIRECTIONS, AbstractEvent, constraint_response
+from .._events import DIRECTIONS, AbstractEvent, hold
 from .._solution import RESULTS
 
 #: Default budget of events per solve (`simulate(..., max_events=...)`).
@@ -103,59 +103,85 @@ class _Hybrid(eqx.Module):
     events: tuple
     counts: tuple[int, ...] = eqx.field(static=True)
 
-    def rows(self, dynamics, t, q, u, p):
-        """(J, b) of every guard, zero rows for guards that cannot rest; None if none can."""
-        return _rows(self, dynamics, t, q, u, p)
+    def split(self, values):
+        """`values` over all guards, as one array per event."""
+        return jnp.split(values, np.cumsum(self.counts)[:-1])
 
-    def accelerations(self, dynamics, t, q, u, p, factorisation, resting):
-        """(q̇, u̇, λ): the equations of motion with the `resting` guards held at zero by
-        J u̇ + b = 0 and their multipliers λ (zero for the others)."""
-        return _accelerations(self, dynamics, t, q, u, p, factorisation, resting)
+    def rows(self, dynamics, t, q, u, p, resting, references):
+        """Each event's held rows (E, W, b, active) (None for an event that cannot rest), or
+        None if no event can rest."""
+        return _rows(self, dynamics, t, q, u, p, resting, references)
 
-    def _accelerations(self, dynamics, t, q, u, p, factorisation, resting):
+    def accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
+        """(q̇, u̇, λ): the equations of motion with the rows of the `resting` guards held and
+        their multipliers λ (zero for the others; None if no event can rest)."""
+        return _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references)
+
+    def _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
         rates, free, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
-        zero = jnp.zeros(resting.shape, u.dtype)
-        rows = self.rows(dynamics, t, q, u, p)
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
         if rows is None:
-            return rates, free, zero
-
-        def held():
-            jacobian, bias = rows
-            response = constraint_response(dynamics, t, q, u, p, jacobian)
-            both = resting[:, None] & resting[None, :]
-            delassus = jnp.where(both, jacobian @ response, jnp.eye(resting.shape[0],
-                                                                   dtype=u.dtype))
-            forces = jnp.where(resting, jnp.linalg.solve(
-                delassus, jnp.where(resting, -(jacobian @ free + bias), 0.0)), 0.0)
-            return free + response @ forces, forces
-
-        accelerations, forces = jax.lax.cond(jnp.any(resting), held, lambda: (free, zero))
+            return rates, free, None
+        rows = [r for r in rows if r is not None]
+        rows = tuple(jnp.concatenate(parts) for parts in zip(*rows))
+        active = rows[3]
+        accelerations, forces = jax.lax.cond(
+            jnp.any(active), lambda: hold(dynamics, t, q, u, p, free, rows),
+            lambda: (free, jnp.zeros(active.shape, u.dtype)))
         return rates, accelerations, forces
 
-    def values(self, dynamics, t, q, u, p, factorisation, resting):
+    def _per_event(self, rows, forces):
+        """The multipliers λ of all held rows, as one array per event (None where it has no
+        rows)."""
+        sizes = [0 if r is None else r[3].shape[0] for r in rows]
+        parts = jnp.split(forces, np.cumsum(sizes)[:-1])
+        return [None if r is None else f for r, f in zip(rows, parts)]
+
+    def values(self, dynamics, t, q, u, p, factorisation, resting, references):
         """The guards, with the multiplier λ_i in place of each guard held at rest."""
-        guards = _guards(self.events, dynamics, t, q, u, p)
-        if self.rows(dynamics, t, q, u, p) is None:
-            return guards
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
+        if rows is None:
+            return _guards(self.events, dynamics, t, q, u, p)
         # the equations are formed only while some guard rests (a real branch unless vmapped)
+        size = sum(r[3].shape[0] for r in rows if r is not None)
         forces = jax.lax.cond(
             jnp.any(resting),
-            lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting)[2],
-            lambda: jnp.zeros(resting.shape, u.dtype))
-        return jnp.where(resting, forces, guards)
+            lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                       references)[2],
+            lambda: jnp.zeros((size,), u.dtype))
+        return jnp.concatenate([
+            e.guards(dynamics, t, q, u, p) if f is None else
+            e.held_values(dynamics, t, q, u, p, f, r, ref)
+            for e, f, r, ref in zip(self.events, self._per_event(rows, forces),
+                                    self.split(resting), references)])
+
+    def held_forces(self, dynamics, t, q, u, p, factorisation, resting, references):
+        """The force each guard carries at rest (zero for the others), shape (K,)."""
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
+        forces = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                    references)[2]
+        return jnp.concatenate([
+            jnp.zeros((c,), u.dtype) if f is None else e.held_forces(f, r, p)
+            for e, c, f, r in zip(self.events, self.counts, self._per_event(rows, forces),
+                                  self.split(resting))])
+
+    def references(self, dynamics, t, q, u, p, resting):
+        """What each event remembers of a segment that starts at (t, q, u)."""
+        return tuple(e.reference(dynamics, t, q, u, p, r)
+                     for e, r in zip(self.events, self.split(resting)))
 
     def field(self, t, y, args):
-        dynamics, p, factorisation, layout, (_, _, resting) = args
+        dynamics, p, factorisation, layout, (_, _, resting, references, _) = args
         q, u = layout.split(y)
         rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
-                                                     resting)
+                                                     resting, references)
         return layout.join(rates, accelerations)
 
-    def rates(self, dynamics, t, q, u, p, factorisation, resting):
+    def rates(self, dynamics, t, q, u, p, factorisation, resting, references):
         """ġ of the guards (as they are, not their multipliers) along the motion at (t, q, u):
         one JVP along (1, q̇, u̇)."""
         rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
-                                                     resting)
+                                                     resting, references)
         rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
         return jax.jvp(lambda t, q, u: _guards(self.events, dynamics, t, q, u, p),
                        (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
@@ -166,19 +192,15 @@ class _Hybrid(eqx.Module):
 # rather than once per use. A chain of two rods striking a floor traced its guards' rows 48
 # times and spent 2.5 of its 8 s of tracing on them.
 @eqx.filter_jit
-def _rows(hybrid, dynamics, t, q, u, p):
-    rows = [e.contact_rows(dynamics, t, q, u, p) for e in hybrid.events]
-    if all(r is None for r in rows):
-        return None
-    m = u.shape[0]
-    full = [r if r is not None else (jnp.zeros((c, m), u.dtype), jnp.zeros((c,), u.dtype))
-            for r, c in zip(rows, hybrid.counts)]
-    return (jnp.concatenate([r[0] for r in full]), jnp.concatenate([r[1] for r in full]))
+def _rows(hybrid, dynamics, t, q, u, p, resting, references):
+    rows = [e.held_rows(dynamics, t, q, u, p, r, ref)
+            for e, r, ref in zip(hybrid.events, hybrid.split(resting), references)]
+    return None if all(r is None for r in rows) else rows
 
 
 @eqx.filter_jit
-def _accelerations(hybrid, dynamics, t, q, u, p, factorisation, resting):
-    return hybrid._accelerations(dynamics, t, q, u, p, factorisation, resting)
+def _accelerations(hybrid, dynamics, t, q, u, p, factorisation, resting, references):
+    return hybrid._accelerations(dynamics, t, q, u, p, factorisation, resting, references)
 
 
 def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
@@ -203,51 +225,109 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
 
     directions = [DIRECTIONS[event.direction] for event, c in zip(events, counts)
                   for _ in range(c)]
+    falling = np.array([d is False for d in directions])
+    rising = np.array([d is True for d in directions])
 
-    def condition(index):
+    def guard_values(t, y, args, sided=False):
+        """The guards (K,), as the segment that starts at t_start sees them."""
+        dynamics, p, factorisation, _, (t_start, leaving, resting, references, _) = args
+        q, u = layout.split(y)
+        g = hybrid.values(dynamics, t, q, u, p, factorisation, resting, references)
+        at_start = (t == t_start) & (leaving == 0)
+        # A guard at zero when a segment starts that did not just fire (a ball released on
+        # the floor) counts as just before its crossing, so that it cannot be passed unseen.
+        g = jnp.where(at_start & falling & (g <= 0) & (g >= -AT_ZERO), tiny, g)
+        g = jnp.where(at_start & rising & (g >= 0) & (g <= AT_ZERO), -tiny, g)
+        if not sided:
+            return g
+        # At a restart the guards that just fired sit at zero: their side is the one the
+        # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
+        # handled is not found again.
+        side = leaving * jnp.maximum(jnp.abs(g), tiny)
+        return jnp.where((t == t_start) & (leaving != 0), side, g)
+
+    # The guards that cross one way are watched as one function, the least of them (each
+    # taken so that it falls through zero): the first crossing of any is the first zero of
+    # their least, located by one root find, and the field is written into the program once
+    # rather than once per guard. A guard that cannot fire from where its segment starts
+    # (on the far side of zero, or at zero after firing and leaving it that way) enters as
+    # its absolute value, which touches zero where the guard crosses back without falling
+    # through it. Guards that fire both ways are watched one by one.
+    groups = [(np.flatnonzero(falling), 1.0), (np.flatnonzero(rising), -1.0)]
+    groups = [(index, sign) for index, sign in groups if index.size]
+    either = [i for i, d in enumerate(directions) if d is None]
+    towards = jnp.asarray(np.where(rising, -1.0, 1.0), dtype)  # (falling taken as +)
+
+    def watched(index, sign, g, armed):
+        value = sign * g[index]
+        return jnp.where(armed[index], value, jnp.abs(value))
+
+    def least(index, sign):
         def cond_fn(t, y, args, **kwargs):
-            dynamics, p, factorisation, _, (t_start, leaving, resting) = args
-            q, u = layout.split(y)
-            g = hybrid.values(dynamics, t, q, u, p, factorisation, resting)[index]
-            at_start = t == t_start
-            # At a restart the guards that just fired sit at zero: their side is the one the
-            # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
-            # handled is not found again.
-            side = leaving[index] * jnp.maximum(jnp.abs(g), tiny)
-            # Any other guard at zero when a segment starts (a ball released on the floor)
-            # counts as just before its crossing, so that it cannot be passed unseen.
-            if directions[index] is False:
-                g = jnp.where(at_start & (g <= 0) & (g >= -AT_ZERO), tiny, g)
-            elif directions[index] is True:
-                g = jnp.where(at_start & (g >= 0) & (g <= AT_ZERO), -tiny, g)
-            return jnp.where(at_start & (leaving[index] != 0), side, g)
+            armed = args[-1][-1]
+            return jnp.min(watched(index, sign, guard_values(t, y, args, sided=True),
+                                   armed))
         return cond_fn
+
+    def single(index):
+        def cond_fn(t, y, args, **kwargs):
+            return guard_values(t, y, args, sided=True)[index]
+        return cond_fn
+
+    def armed_at(t, y, args):
+        """Which guards start a segment where they can fire: on the side they fall from, or
+        at zero just after firing and moving to that side."""
+        leaving = args[-1][1]
+        g = guard_values(t, y, args)
+        just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
+        return jnp.where(just_fired, towards * leaving > 0, towards * g > 0)
+
+    def which_fired(mask, t, y, args):
+        """(K,) the guards whose crossing ended the segment, from the event's mask."""
+        g = guard_values(t, y, args)
+        armed = args[-1][-1]
+        fired = jnp.zeros((total,), bool)
+        for (index, sign), hit in zip(groups, mask[:len(groups)]):
+            first = jnp.asarray(index)[jnp.argmin(watched(index, sign, g, armed))]
+            fired = fired.at[first].set(hit)
+        for i, hit in zip(either, mask[len(groups):]):
+            fired = fired.at[i].set(hit)
+        return fired
 
     root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
                               atol=1e-12 if dtype == jnp.float64 else 1e-6)
-    event = diffrax.Event([condition(i) for i in range(total)], root_finder, directions)
+    event = diffrax.Event([least(index, sign) for index, sign in groups]
+                          + [single(i) for i in either], root_finder,
+                          [False] * len(groups) + [None] * len(either))
     ts_requested = requested.ts
-    can_rest = hybrid.rows(dynamics, t0, q0, u0, p) is not None
+    no_guards = jnp.zeros((total,), bool)
+    references0 = hybrid.references(dynamics, t0, q0, u0, p, no_guards)
+    can_rest = hybrid.rows(dynamics, t0, q0, u0, p, no_guards, references0) is not None
 
     def observe(t, y, args):
         """The requested quantities, and the normal forces λ of the contacts held at rest."""
         seen = requested.fn(t, y, args)
         if not can_rest:
             return seen, None
-        dynamics, p, factorisation, _, (_, _, resting) = args
+        dynamics, p, factorisation, _, (_, _, resting, references, _) = args
         q, u = layout.split(y)
-        return seen, hybrid.accelerations(dynamics, t, q, u, p, factorisation, resting)[2]
+        return seen, hybrid.held_forces(dynamics, t, q, u, p, factorisation, resting,
+                                        references)
 
     def segment(carry, index):
-        (t_start, y_start, leaving, resting, done, saved, last, result, steps, count) = carry
+        (t_start, y_start, leaving, resting, references, done, saved, last, result, steps,
+         count) = carry
         t_from = jnp.where(done, t1, t_start)
         if ts_requested is None:
             sub = diffrax.SubSaveAt(t1=True, fn=observe)
         else:
             sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=observe)
+        segment_args = (*args, (t_from, leaving, resting, references, no_guards))
+        segment_args = (*args, (t_from, leaving, resting, references,
+                                armed_at(t_from, y_start, segment_args)))
         solution = diffrax.diffeqsolve(
             diffrax.ODETerm(hybrid.field), solver, t_from, t1, dt0, y_start,
-            args=(*args, (t_from, leaving, resting)),
+            args=segment_args,
             saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
                                   controller_state=True),
             stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps,
@@ -256,11 +336,11 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
         assert solution.ys is not None and solution.ts is not None
         assert solution.event_mask is not None and solution.controller_state is not None
         ran = ~done
-        fired = jnp.stack(solution.event_mask) & ran
-        happened = jnp.any(fired)
         (requested_ys, last_y) = solution.ys
         t_end = solution.ts[1][0]
         y_end = last_y[0]
+        fired = which_fired(solution.event_mask, t_end, y_end, segment_args) & ran
+        happened = jnp.any(fired)
         # The requested states this segment covers: (t_start, t_end], and t0 itself.
         if ts_requested is None:
             saved = jax.tree_util.tree_map(lambda new, old: jnp.where(ran, new, old),
@@ -275,7 +355,8 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
         q, u = layout.split(y_end)
         which = jnp.argmax(fired)
         fired_owner = owner[which]
-        guard_rates = hybrid.rates(dynamics, t_end, q, u, p, factorisation, resting)
+        guard_rates = hybrid.rates(dynamics, t_end, q, u, p, factorisation, resting,
+                                   references)
 
         def jump(i):
             mine = np.array([k for k, o in enumerate(owner_list) if o == i])
@@ -298,8 +379,9 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
         y_next = layout.join(q_plus, u_plus)
         # ġ just after the jump: which side each fired guard leaves towards (none for a guard
         # that came to rest or was released: it changes meaning there).
+        references_next = hybrid.references(dynamics, t_end, q_plus, u_plus, p, resting_plus)
         rates_after = hybrid.rates(dynamics, t_end, q_plus, u_plus, p, factorisation,
-                                   resting_plus)
+                                   resting_plus, references_next)
         same = resting_plus == resting
         leaving_next = jnp.where(fired & same, jnp.sign(rates_after), 0.0).astype(dtype)
 
@@ -328,12 +410,11 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
                   happened & resting_plus)
         count = count + (happened & (index < max_events)).astype(count.dtype)
         done = done | ~happened | terminal | failed | exhausted
-        carry = (t_end, y_next, leaving_next, resting_plus, done, saved, last, new_result,
-                 steps, count)
+        carry = (t_end, y_next, leaving_next, resting_plus, references_next, done, saved, last,
+                 new_result, steps, count)
         return carry, record
 
-    no_guards = jnp.zeros((total,), bool)
-    start_args = (*args, (t0, jnp.zeros((total,), dtype), no_guards))
+    start_args = (*args, (t0, jnp.zeros((total,), dtype), no_guards, references0, no_guards))
     if ts_requested is None:
         saved0 = jax.eval_shape(lambda: observe(t0, y0, start_args))
     else:
@@ -343,10 +424,11 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     if ts_requested is None:
         saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
     zero = jnp.zeros((), jnp.int32)
-    carry0 = (t0, y0, jnp.zeros((total,), dtype), no_guards, jnp.array(False), saved0,
+    carry0 = (t0, y0, jnp.zeros((total,), dtype), no_guards, references0, jnp.array(False),
+              saved0,
               (t0, y0, jnp.array(False)), RESULTS.successful, (zero, zero, zero), zero)
     carry, records = jax.lax.scan(segment, carry0, jnp.arange(max_events + 1))
-    (_, _, _, _, _, (saved, forces), (t_last, y_last, stalled), result, steps, count) = carry
+    (*_, (saved, forces), (t_last, y_last, stalled), result, steps, count) = carry
     records = jax.tree_util.tree_map(lambda x: x[:max_events], records)
     (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses, resting) = records
     ts_out = t_last[None] if ts_requested is None else ts_requested
