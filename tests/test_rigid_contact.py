@@ -30,21 +30,34 @@ def _downhill(slope):
     return np.array([np.cos(slope), 0.0, -np.sin(slope)])
 
 
+H = 1e-6  # the step of the central differences in μ
+
+
 @functools.cache
 def _particles():
-    """One batch, one compiled solve: the particle on flat ground pushed at V0 along x, and
-    at rest on slopes of 20° and 35°."""
-    u0 = np.zeros((3, 3))
-    u0[0, 0] = V0
-    p = {"slope": jnp.asarray(SLOPES), "mu": jnp.full(3, MU)}
-    return jaxdyn.simulate_batch(PARTICLE, np.zeros((3, 3)), u0, p, batched_params=True,
-                                 t1=TS[-1], ts=TS, events=[SLIDING], max_events=4, **TOL)
+    """One program for the particle tests: the trajectories and their derivatives in μ (one
+    forward-mode pass), over a batch of the particle on flat ground pushed at V0 along x, at
+    rest on slopes of 20° and 35°, and pushed with μ ± H."""
+    u0 = np.zeros((5, 3))
+    u0[[0, 3, 4], 0] = V0
+    slopes = np.concatenate([SLOPES, [0.0, 0.0]])
+    mus = np.array([MU, MU, MU, MU + H, MU - H])
+
+    def solve(slope, mu, u0):
+        return jaxdyn.simulate(PARTICLE, jnp.zeros(3), u0, {"slope": slope, "mu": mu},
+                               t1=TS[-1], ts=TS, events=[SLIDING], max_events=4, **TOL)
+
+    def with_derivative(slope, mu, u0):
+        return jax.jvp(lambda mu: solve(slope, mu, u0), (mu,), (jnp.ones_like(mu),))
+
+    return jax.jit(jax.vmap(with_derivative))(jnp.asarray(slopes), jnp.asarray(mus),
+                                              jnp.asarray(u0))
 
 
 def test_block_slides_to_rest_at_the_coulomb_stopping_distance_and_sticks():
     """Pushed at v₀ on the ground, the block decelerates at μ g, stops at t = v₀/(μ g) after
     v₀²/(2 μ g) (the event that ends its slip) and sticks there, its weight on the ground."""
-    sol = _particles()
+    sol, _ = _particles()
     count = int(sol.events.count[0])
     assert count == 2  # met at rest at t = 0 (sliding), stopped
     stop = V0 / (MU * G)
@@ -61,7 +74,7 @@ def test_block_slides_to_rest_at_the_coulomb_stopping_distance_and_sticks():
 
 def test_static_friction_holds_the_block_below_the_friction_angle():
     """tan 20° < μ: the block sticks where it was put, held by friction g sin γ ≤ μ g cos γ."""
-    sol = _particles()
+    sol, _ = _particles()
     assert int(sol.events.count[1]) == 1
     np.testing.assert_array_equal(sol.events.resting[1, 0], [True, True])
     assert_close(sol.q[1], np.zeros((TS.size, 3)), rtol=0, atol=1e-12)
@@ -72,7 +85,7 @@ def test_static_friction_holds_the_block_below_the_friction_angle():
 
 def test_block_slides_down_a_steep_slope_at_the_coulomb_acceleration():
     """tan 35° > μ: the block slides from rest with s̈ = g (sin γ − μ cos γ), exactly."""
-    sol = _particles()
+    sol, _ = _particles()
     slope = SLOPES[2]
     assert int(sol.events.count[2]) == 1
     np.testing.assert_array_equal(sol.events.resting[2, 0], [True, False])
@@ -83,20 +96,18 @@ def test_block_slides_down_a_steep_slope_at_the_coulomb_acceleration():
                  rtol=0, atol=1e-12)
 
 
-def test_stopping_distance_derivative_in_mu_across_the_stop():
-    """d/dμ of where the block comes to rest, by reverse mode through the slide and the event
-    that stops it: −v₀²/(2 μ² g), and a central difference."""
-    p = {"slope": 0.0, "mu": MU}
-
-    def rest(mu):
-        sol = jaxdyn.simulate(PARTICLE, jnp.zeros(3), jnp.array([V0, 0.0, 0.0]),
-                              {**p, "mu": mu}, t1=0.5, events=[SLIDING], max_events=4, **TOL)
-        return sol.q[-1, 0]
-
-    gradient = jax.grad(rest)(MU)
-    assert_close(gradient, -V0**2 / (2 * MU**2 * G), rtol=1e-8)
-    h = 1e-6
-    assert_close(gradient, (rest(MU + h) - rest(MU - h)) / (2 * h), rtol=1e-6)
+def test_derivatives_in_mu_across_the_stop():
+    """d/dμ of the trajectories, through the slides and the events that start and stop them:
+    where the pushed block rests, −v₀²/(2 μ² g) (and a central difference); on the steep
+    slope, −g cos γ t²/2; none where it sticks."""
+    sol, tangent = _particles()
+    rest = -V0**2 / (2 * MU**2 * G)
+    assert_close(tangent.q[0, -1, 0], rest, rtol=1e-8)
+    assert_close(tangent.q[0, -1, 0], (sol.q[3, -1, 0] - sol.q[4, -1, 0]) / (2 * H), rtol=1e-6)
+    slope = SLOPES[2]
+    assert_close(np.asarray(tangent.q[2]) @ _downhill(slope), -G * np.cos(slope) * TS**2 / 2,
+                 rtol=1e-8, atol=1e-12)
+    assert_close(tangent.q[1], np.zeros((TS.size, 3)), rtol=0, atol=1e-12)
 
 
 # -- a solid ball (I = 2/5 m r²), a free body of a tree ------------------------------------
