@@ -34,7 +34,9 @@ class AbstractEvent(eqx.Module):
     and `jump`; `terminal` events stop the motion instead of jumping. A guard may also come
     to rest (a contact that stays closed): its `contact_rows` then hold it at zero as a
     constraint J u̇ + b = 0 with a multiplier λ ≥ 0, which takes the guard's place, so that
-    the contact is released when λ falls through zero.
+    the contact is released when λ falls through zero. Events whose resting guards hold
+    other rows, or are held by other forces (Coulomb friction: `jaxdyn.RigidContact`),
+    give `held_rows`, `held_values`, `held_forces` and `reference` instead.
     """
 
     direction: eqx.AbstractVar[str]

@@ -45,8 +45,10 @@ class EventRecord(eqx.Module):
     - `resting`: which guards are held at rest after the event (a contact come to rest),
       shape (E, K).
     - `count`: the number of events that happened, a scalar.
-    - `normal_forces`: the normal forces λ of the contacts at rest, at the solution's save
-      times (zero where a contact does not rest), shape (k, K); None where no event can rest.
+    - `normal_forces`: the force each guard carries at rest, at the solution's save times:
+      a resting contact's normal force λ (for a `RigidContact`'s friction guards, the
+      friction force), zero where a guard does not rest, shape (k, K); None where no event
+      can rest.
     """
 
     t: Float[Array, " E"]
