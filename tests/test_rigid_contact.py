@@ -31,27 +31,31 @@ def _downhill(slope):
 
 
 H = 1e-6  # the step of the central differences in μ
+DROP = 0.2  # the height the thrown block falls from
 
 
 @functools.cache
 def _particles():
     """One program for the particle tests: the trajectories and their derivatives in μ (one
     forward-mode pass), over a batch of the particle on flat ground pushed at V0 along x, at
-    rest on slopes of 20° and 35°, and pushed with μ ± H."""
-    u0 = np.zeros((5, 3))
-    u0[[0, 3, 4], 0] = V0
-    slopes = np.concatenate([SLOPES, [0.0, 0.0]])
-    mus = np.array([MU, MU, MU, MU + H, MU - H])
+    rest on slopes of 20° and 35°, pushed with μ ± H, and thrown along x from DROP onto
+    flat ground with μ = MU and μ = 1.5."""
+    q0 = np.zeros((7, 3))
+    q0[5:, 2] = DROP
+    u0 = np.zeros((7, 3))
+    u0[[0, 3, 4, 5, 6], 0] = V0
+    slopes = np.concatenate([SLOPES, np.zeros(4)])
+    mus = np.array([MU, MU, MU, MU + H, MU - H, MU, 1.5])
 
-    def solve(slope, mu, u0):
-        return jaxdyn.simulate(PARTICLE, jnp.zeros(3), u0, {"slope": slope, "mu": mu},
-                               t1=TS[-1], ts=TS, events=[SLIDING], max_events=4, **TOL)
+    def solve(slope, mu, q0, u0):
+        return jaxdyn.simulate(PARTICLE, q0, u0, {"slope": slope, "mu": mu}, t1=TS[-1],
+                               ts=TS, events=[SLIDING], max_events=4, **TOL)
 
-    def with_derivative(slope, mu, u0):
-        return jax.jvp(lambda mu: solve(slope, mu, u0), (mu,), (jnp.ones_like(mu),))
+    def with_derivative(slope, mu, q0, u0):
+        return jax.jvp(lambda mu: solve(slope, mu, q0, u0), (mu,), (jnp.ones_like(mu),))
 
     return jax.jit(jax.vmap(with_derivative))(jnp.asarray(slopes), jnp.asarray(mus),
-                                              jnp.asarray(u0))
+                                              jnp.asarray(q0), jnp.asarray(u0))
 
 
 def test_block_slides_to_rest_at_the_coulomb_stopping_distance_and_sticks():
@@ -110,6 +114,24 @@ def test_derivatives_in_mu_across_the_stop():
     assert_close(tangent.q[1], np.zeros((TS.size, 3)), rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("member, mu", [(5, MU), (6, 1.5)])
+def test_thrown_block_lands_by_the_frictional_impact_law(member, mu):
+    """Thrown along x at v₀ from h, the block lands at t = √(2h/g) with v_z⁻ = −√(2gh): a
+    plastic impact, Λ_N = m |v_z⁻|, whose tangential impulse stops the slip if μ Λ_N ≥ m v₀
+    (it sticks where it lands) and is μ Λ_N otherwise (v_x⁺ = v₀ − μ |v_z⁻|; it then slides
+    v_x⁺²/(2 μ g) further and sticks)."""
+    sol, _ = _particles()
+    landing, fall = np.sqrt(2 * DROP / G), np.sqrt(2 * G * DROP)
+    slip = max(V0 - mu * fall, 0.0)
+    assert_close(sol.events.t[member, 0], landing, rtol=1e-10)
+    assert_close(sol.events.impulses[member, 0], [fall, V0 - slip], rtol=1e-10)
+    assert_close(sol.events.u_plus[member, 0], [slip, 0.0, 0.0], rtol=0, atol=1e-10)
+    rest = V0 * landing + slip**2 / (2 * mu * G)
+    assert_close(sol.q[member, -1], [rest, 0.0, 0.0], rtol=1e-10, atol=1e-12)
+    assert bool(np.all(sol.events.resting[member, int(sol.events.count[member]) - 1]))
+    assert (slip > 0) == (mu == MU)  # (the two regimes)
+
+
 # -- a solid ball (I = 2/5 m r²), a free body of a tree ------------------------------------
 
 M, R = 0.5, 0.1
@@ -144,6 +166,7 @@ def _in_world(q, u):
     return turn @ np.asarray(u[:3]), turn @ np.asarray(u[3:])
 
 
+@pytest.mark.slow  # (the free ball's hybrid program compiles for 30–40 s)
 @pytest.mark.parametrize("member, mu", [(0, 1.0), (1, 0.1)])
 def test_spinning_ball_struck_onto_the_ground_sticks_or_slips(member, mu):
     """The oblique impact of a spinning ball (Glocker's law, e = 0.5): the slip of the
@@ -167,6 +190,7 @@ def test_spinning_ball_struck_onto_the_ground_sticks_or_slips(member, mu):
     assert (abs(tangential) < mu * normal) == (mu == 1.0)  # (the two regimes)
 
 
+@pytest.mark.slow
 def test_ball_rolls_without_slipping_at_five_sevenths_g_sin_slope():
     """Released on a 20° slope with ample friction, the ball's contact sticks and it rolls:
     its centre travels 5/14 g sin γ t² (Routh), to the solver's tolerance (the turning
@@ -178,7 +202,7 @@ def test_ball_rolls_without_slipping_at_five_sevenths_g_sin_slope():
     assert_close(s, 5 / 14 * G * np.sin(slope) * ts**2, rtol=1e-8, atol=1e-12)
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # (its hybrid program compiles for about a minute)
 def test_box_on_four_corners_slides_to_rest_carrying_its_weight():
     """A box flat on its four lower corners (redundant contacts), pushed: it stops after
     v₀²/(2 μ g), its corners' normal forces summing to its weight."""
