@@ -23,7 +23,6 @@ jax.config.update("jax_enable_x64", True)
 
 import diffrax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 
 import jaxdyn
