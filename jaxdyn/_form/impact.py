@@ -18,7 +18,27 @@ from .._events import AbstractEvent, as_guards, constraint_response
 MAX_SIMULTANEOUS = 10
 
 
-class UnilateralContact(AbstractEvent):
+class AbstractContactEvent(AbstractEvent):
+    """Unilateral contacts as events: gaps that fire as they close, and never stop the motion."""
+
+    @property
+    def direction(self) -> str:
+        return "falling"
+
+    @property
+    def terminal(self) -> bool:
+        return False
+
+
+def comes_to_rest(closed, separation, normal_acceleration, rest_within):
+    """The closed contacts whose next flight, 2 φ̇⁺/|φ̈| under the free motion, would last at
+    most `rest_within`: a Zeno sequence of impacts ends there in resting contact."""
+    flight = 2 * jnp.maximum(separation, 0.0) / jnp.maximum(
+        -normal_acceleration, jnp.finfo(separation.dtype).tiny)
+    return closed & (normal_acceleration < 0) & (flight <= rest_within)
+
+
+class UnilateralContact(AbstractContactEvent):
     r"""Unilateral contacts φ(q) ≥ 0 with impacts by Newton's law of restitution.
 
     The motion is smooth while every gap φ_i(q, p) is open. When one closes (φ_i = 0 with
@@ -68,14 +88,6 @@ class UnilateralContact(AbstractEvent):
     closed_within: float = eqx.field(default=1e-9, static=True)
     rest_within: float = eqx.field(default=1e-5, static=True)
     time_dependent: bool = eqx.field(default=False, static=True)
-
-    @property
-    def direction(self) -> str:
-        return "falling"
-
-    @property
-    def terminal(self) -> bool:
-        return False
 
     def gaps(self, t, q, p):
         """φ(t, q, p), shape (k,)."""
@@ -138,14 +150,11 @@ class UnilateralContact(AbstractEvent):
         approaching = speed < 0
         bounced = u + response @ newton_impulses(
             delassus, jnp.where(approaching, 1 + restitution, 1.0) * speed, closed)
-        # the flight each contact would now make: 2 φ̇⁺ / |φ̈| under the free motion
         _, accelerations, _, _ = equations_of_motion(dynamics, t, q, bounced, p)
         rows, bias = self.contact_rows(dynamics, t, q, bounced, p)
         normal_acceleration = rows @ accelerations + bias
         separation = jacobian @ (bounced - u) + speed
-        flight = 2 * jnp.maximum(separation, 0.0) / jnp.maximum(-normal_acceleration,
-                                                                  jnp.finfo(u.dtype).tiny)
-        rest = closed & (normal_acceleration < 0) & (flight <= self.rest_within)
+        rest = comes_to_rest(closed, separation, normal_acceleration, self.rest_within)
         impulses = newton_impulses(
             delassus, jnp.where(approaching & ~rest, 1 + restitution, 1.0) * speed, closed)
         impact = jnp.any(fired & ~resting)

@@ -38,13 +38,13 @@ import jax
 import jax.numpy as jnp
 
 from .._dynamics import equations_of_motion
-from .._events import AbstractEvent, constraint_response, hold
+from .._events import constraint_response, hold
 from .._system.contact import (AbstractTerrain, ContactPair, ContactPoint, Plane, check_points,
                                contact_kinematics, find_tree)
-from .impact import MAX_SIMULTANEOUS
+from .impact import MAX_SIMULTANEOUS, AbstractContactEvent, comes_to_rest
 
 
-class RigidContact(AbstractEvent):
+class RigidContact(AbstractContactEvent):
     r"""Contact points and spheres touching a terrain (or each other) as rigid unilateral
     contacts with Coulomb friction: impacts by Newton's law of restitution and Coulomb's law
     of friction (Glocker's frictional impact law), and resting contacts that stick or slide,
@@ -115,14 +115,6 @@ class RigidContact(AbstractEvent):
         self.closed_within = float(closed_within)
         self.rest_within = float(rest_within)
         self.stick_within = float(stick_within)
-
-    @property
-    def direction(self) -> str:
-        return "falling"
-
-    @property
-    def terminal(self) -> bool:
-        return False
 
     # -- the contacts at one state ------------------------------------------------------------
 
@@ -262,14 +254,12 @@ class RigidContact(AbstractEvent):
             free = velocity.at[:, 0].multiply(jnp.where(bouncing, 1 + restitution, 1.0))
             return coulomb_impulses(delassus, free, closed, mu)
 
-        # the flight each contact would make after bouncing, 2 γ_N⁺ / |γ̇_N| in free motion
+        # which contacts would come to rest after bouncing (their next flight is short)
         bounced = u + response @ impulses(approaching).reshape(-1)
         _, accelerations, _, _ = equations_of_motion(dynamics, t, q, bounced, p)
         _, _, rows_b, velocity_b, bias_b = self.contact_state(dynamics, t, q, bounced, p)
-        normal_acceleration = rows_b[:, 0] @ accelerations + bias_b[:, 0]
-        flight = 2 * jnp.maximum(velocity_b[:, 0], 0.0) / jnp.maximum(
-            -normal_acceleration, jnp.finfo(u.dtype).tiny)
-        rest = closed & (normal_acceleration < 0) & (flight <= self.rest_within)
+        rest = comes_to_rest(closed, velocity_b[:, 0],
+                             rows_b[:, 0] @ accelerations + bias_b[:, 0], self.rest_within)
         struck = impulses(approaching & ~rest)
         u_plus = jnp.where(impact, u + response @ struck.reshape(-1), u)
         struck = jnp.where(impact, struck, 0.0)
