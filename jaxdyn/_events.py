@@ -21,6 +21,7 @@ import jax.numpy as jnp
 
 from ._convention import call, vector
 from ._dynamics import formed_equations
+from ._linalg import small_solve
 
 #: The directions of a crossing that trigger an event: from positive to negative (a gap
 #: closing), from negative to positive, or both.
@@ -148,12 +149,12 @@ def constraint_response(dynamics, t, q, u, p, jacobian):
     _, velocity_constraints = dynamics.state_constraints(t, q, u, p)
     m, k = u.shape[0], jacobian.shape[0]
     if velocity_constraints.shape[0] == 0:
-        return jnp.linalg.solve(mass_matrix, jacobian.T)
+        return small_solve(mass_matrix, jacobian.T)
     a = jax.jacfwd(lambda u: dynamics.state_constraints(t, q, u, p)[1])(u)
     c = a.shape[0]
     kkt = jnp.block([[mass_matrix, a.T], [a, jnp.zeros((c, c), a.dtype)]])
     rhs = jnp.concatenate([jacobian.T, jnp.zeros((c, k), a.dtype)])
-    return jnp.linalg.solve(kkt, rhs)[:m]
+    return small_solve(kkt, rhs)[:m]
 
 
 def hold(dynamics, t, q, u, p, free, rows):
@@ -174,7 +175,7 @@ def hold(dynamics, t, q, u, p, free, rows):
     eye = jnp.eye(r, dtype=u.dtype)
     both = active[:, None] & active[None, :]
     delassus = jnp.where(both, delassus + 16 * jnp.finfo(u.dtype).eps * scale * eye, eye)
-    forces = jnp.where(active, jnp.linalg.solve(
+    forces = jnp.where(active, small_solve(
         delassus, jnp.where(active, -(rows_e @ free + bias), 0.0)), 0.0)
     return free + response @ forces, forces
 

@@ -139,6 +139,19 @@ def solve(factorisation: Factorisation, forcing) -> jax.Array:
     return accelerations
 
 
+def small_solve(matrix, rhs) -> jax.Array:
+    """x = A⁻¹ b for a small square A (not necessarily symmetric) by Householder QR,
+    A = Q R, x = R⁻¹ Qᵀ b: backward stable like LU with partial pivoting, and free of the
+    loop that turns LU's pivots into a permutation, which XLA compiles separately at each
+    of the dozens of places a hybrid solve inlines the contacts' small systems (Delassus
+    matrices, impact and friction laws; a ball's unilateral contact: 2.1 → 1.6 s of XLA)."""
+    q, r = jnp.linalg.qr(matrix)
+    column = rhs.ndim == matrix.ndim - 1
+    b = rhs[..., None] if column else rhs
+    x = jsl.solve_triangular(r, jnp.swapaxes(q, -1, -2) @ b, lower=False)
+    return x[..., 0] if column else x
+
+
 def _whole(group, m):
     return len(group) == 1 and group[0] == tuple(range(m))
 

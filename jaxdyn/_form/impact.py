@@ -11,6 +11,7 @@ import numpy as np
 from .._convention import CONFIGURATION_ARGS, call
 from .._dynamics import equations_of_motion
 from .._events import AbstractEvent, as_guards, constraint_response
+from .._linalg import small_solve
 
 #: The most contacts that may close at one instant: the impact law's complementarity problem
 #: is solved by enumerating the 2^k sets of contacts that push (exact, and differentiable
@@ -184,7 +185,7 @@ def newton_impulses(delassus, free, closed):
     def candidate(s):
         both = s[:, None] & s[None, :]
         matrix = jnp.where(both, regularised, jnp.eye(k, dtype=free.dtype))
-        impulses = jnp.where(s, jnp.linalg.solve(matrix, jnp.where(s, -free, 0.0)), 0.0)
+        impulses = jnp.where(s, small_solve(matrix, jnp.where(s, -free, 0.0)), 0.0)
         w = delassus @ impulses + free
         # sign violations as speeds (G Λ is one), relative to the approach speeds
         violation = (jnp.sum(jnp.maximum(-impulses, 0.0)) * scale

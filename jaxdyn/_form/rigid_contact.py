@@ -39,6 +39,7 @@ import jax.numpy as jnp
 
 from .._dynamics import equations_of_motion
 from .._events import constraint_response, hold
+from .._linalg import small_solve
 from .._system.contact import (AbstractTerrain, ContactPair, ContactPoint, Plane, check_points,
                                contact_kinematics, find_tree)
 from .impact import MAX_SIMULTANEOUS, AbstractContactEvent, comes_to_rest
@@ -367,7 +368,7 @@ def coulomb_impulses(delassus, free, closed, mu):
         value = residual(x)
         matrix = jax.jacfwd(residual)(x)
         # (a regularisation at round-off: redundant contacts leave it singular)
-        newton = x - jnp.linalg.solve(matrix + 16 * jnp.finfo(dtype).eps * eye, value)
+        newton = x - small_solve(matrix + 16 * jnp.finfo(dtype).eps * eye, value)
         better = jnp.sum(residual(newton) ** 2) <= jnp.sum(value ** 2)
         impulses = jnp.where(better, newton, x).reshape(k, 3)
     return impulses

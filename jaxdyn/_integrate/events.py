@@ -94,6 +94,17 @@ def _guard_counts(events, dynamics, t, q, u, p):
             for e in events]
 
 
+def can_rest(events, dynamics, t, q, u, p) -> bool:
+    """Whether some guard of `events` can come to rest (its event has held rows): the vector
+    field then carries the held-force solve (trace time)."""
+    counts = _guard_counts(events, dynamics, t, q, u, p)
+    hybrid = _Hybrid(tuple(events), tuple(counts))
+    resting = jnp.zeros((sum(counts),), bool)
+    references = hybrid.references(dynamics, t, q, u, p, resting)
+    return jax.eval_shape(lambda: hybrid.rows(dynamics, t, q, u, p, resting,
+                                              references)) is not None
+
+
 def _guards(events, dynamics, t, q, u, p):
     return jnp.concatenate([e.guards(dynamics, t, q, u, p) for e in events])
 
@@ -304,12 +315,12 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     ts_requested = requested.ts
     no_guards = jnp.zeros((total,), bool)
     references0 = hybrid.references(dynamics, t0, q0, u0, p, no_guards)
-    can_rest = hybrid.rows(dynamics, t0, q0, u0, p, no_guards, references0) is not None
+    rests = can_rest(events, dynamics, t0, q0, u0, p)
 
     def observe(t, y, args):
         """The requested quantities, and the normal forces λ of the contacts held at rest."""
         seen = requested.fn(t, y, args)
-        if not can_rest:
+        if not rests:
             return seen, None
         dynamics, p, factorisation, _, (_, _, resting, references, _) = args
         q, u = layout.split(y)

@@ -32,7 +32,7 @@ from .options import (
     fixed_steps,
     step_budget,
 )
-from .events import MAX_EVENTS, check_events
+from .events import MAX_EVENTS, can_rest, check_events
 from .solve import Layout, Projected, solve, vector_field
 
 
@@ -275,8 +275,14 @@ def _simulate(dynamics, q0, u0, numbers, options):
         assert rtol is not None and atol is not None  # `simulate` filled in the defaults
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
     forward = adjoint is None and not dense and reachable <= MAX_FORWARD
+    # Events whose contacts can rest put the held-force solve into the vector field, and a
+    # hybrid solve also evaluates the field in its root find, its guards' rates and its
+    # saves: written out, the stages multiply that program (a particle under rigid contact
+    # with friction, Dopri8: 12 → 6 s of XLA, run time 1.3 → 1.1 ms as a loop).
+    resting_field = events is not None and can_rest(events, dynamics, t0, q0, u0, p)
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
-            and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward):
+            and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward
+            and not resting_field):
         # The same steps, without a loop over the stages (2–3× faster on small systems).
         # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
         # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's
