@@ -160,7 +160,11 @@ def simulate(
     # vmap), not concrete arrays closed over: a robot's hundreds of inertial parameters when
     # only q0 is differentiated. Counted with the inputs' arrays (a policy's weights).
     if events is not None:
-        events = check_events(events, max_events)
+        # Coefficients given as Python numbers (a restitution, a friction coefficient) are
+        # traced, so that a new value reuses the compiled solve.
+        events = jax.tree_util.tree_map(
+            lambda x: numbers_as_arrays(x, dtype) if isinstance(x, float) else x,
+            check_events(events, max_events))
         if dense:
             raise ValueError("dense=True is not available with events: the solution is "
                              "piecewise, one solve per segment between events.")

@@ -50,7 +50,7 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
     own errors after the solve). With `events`, the solve of a hybrid system
     (`jaxdyn._integrate.events`: a `HybridSolution`)."""
     def run(inputs, adjoint, vector_field=vector_field):
-        t0, t1, dt0, y0, args, saveat, controller = inputs
+        t0, t1, dt0, y0, args, saveat, controller, events = inputs
         if events is not None:
             from .events import hybrid_solve  # (it builds on this module)
             return hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint,
@@ -59,7 +59,9 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
                                    args=args, saveat=saveat, stepsize_controller=controller,
                                    adjoint=adjoint, max_steps=max_steps, throw=False)
 
-    inputs = (t0, t1, dt0, y0, args, saveat, controller)
+    # The events' arrays (coefficients given as numbers) are inputs of the solve like the
+    # parameters, not constants closed over by its derivative rule.
+    inputs = (t0, t1, dt0, y0, args, saveat, controller, events)
     if not forward:
         return run(inputs, diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint)
     dynamic, static = eqx.partition(inputs, eqx.is_array)
@@ -94,7 +96,7 @@ def _sensitivity_equations(run, solver, inputs, basis):
 
     Reference: E. Hairer, S. P. Nørsett, G. Wanner, Solving Ordinary Differential Equations
     I (1993), §I.14 and §II.6 (internal differentiation)."""
-    t0, t1, dt0, y0, args, saveat, controller = inputs
+    t0, t1, dt0, y0, args, saveat, controller, _ = inputs
     counts = [len(jax.tree_util.tree_leaves(eqx.filter(part, eqx.is_array)))
               for part in inputs]
     first_y0 = sum(counts[:3])
@@ -159,7 +161,7 @@ def _sensitivity_equations(run, solver, inputs, basis):
                             controller_state=saveat.controller_state,
                             made_jump=saveat.made_jump)
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    solution = run((t0, t1, dt0, z0, (args, directions), saveat, controller),
+    solution = run((t0, t1, dt0, z0, (args, directions), saveat, controller, None),
                    diffrax.ForwardMode(), field)
     out = eqx.filter(eqx.tree_at(lambda s: s.ys, solution, [y for y, _ in solution.ys],
                                  is_leaf=lambda x: x is None), eqx.is_array)
