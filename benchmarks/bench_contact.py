@@ -28,11 +28,11 @@ import xml.etree.ElementTree as ET
 
 import jax
 
-# XLA's CPU runtime can wedge while a large vmapped batch runs: every thread waits on a futex,
-# none works, and reading the result never returns (three times here at 1024 robots, in
-# jaxdyn's batch and in MJX's, also without XLA's multi-threaded Eigen pool). Dispatching
-# synchronously is the known way round (jax-ml/jax#25861); it applies to both libraries alike,
-# and the timings block on every call anyway.
+# A large vmapped batch can wedge on jaxlib 0.10: its batched LAPACK kernels (MJX's Cholesky
+# factorisations) split their batch into tasks on XLA's intra-op thread pool and wait for
+# them, and two such kernels running at once hold every thread of a 2-core machine's pool
+# (benchmarks/README.md, "Why the 1024 runs stall"); jaxlib 0.11.2 builds that path out.
+# Dispatching synchronously keeps each row printed as soon as it is measured.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 jax.config.update("jax_enable_x64", True)
