@@ -12,6 +12,7 @@ import subprocess
 import sys
 import types
 
+import numpy as np
 import pytest
 
 import jaxdyn
@@ -191,30 +192,62 @@ def test_the_pages_cover_every_guide():
     assert guides == set(_PAGES[2:])
 
 
-def test_the_guides_code_runs(monkeypatch):
-    """Every Python block of the README and the guides, in order in one namespace (as a reader
-    pastes them), fragments after the context they assume. The block that joins several
-    processes by `jax.distributed` is run for real by
+@pytest.fixture(scope="module")
+def guides():
+    """Every Python block of the README and the guides, run in order in one namespace (as a
+    reader pastes them), fragments after the context they assume; the namespace as each block
+    left it, by (page, first line of the block). The block that joins several processes by
+    `jax.distributed` is run for real by
     tests/test_batch.py::test_two_processes_with_jax_distributed_equal_one."""
-    monkeypatch.chdir(ROOT)
-    monkeypatch.syspath_prepend(str(ROOT / "tests"))
     blocks = [(page, block) for page in _PAGES
               for block in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)]
     assert len(blocks) >= 12
     namespace = {}
-    exec("import jax, jax.numpy as jnp, numpy as np, jaxdyn", namespace)
-    run = 0
-    for page, block in blocks:
-        if "jax.distributed.initialize" in block:
-            continue
-        for key, context in _CONTEXT.items():
-            if key in block:
-                exec(context, namespace)
-        try:
-            exec(compile(block, page, "exec"), namespace)
-        except Exception as error:
-            raise AssertionError(f"a block of {page} failed:\n{block}") from error
-        run += 1
-        if run == 1:
-            namespace["quickstart"] = tuple(namespace[k] for k in ("pendulum", "p", "q0", "qd0"))
-    assert run == len(blocks) - 1
+    after, ran = {}, []
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        monkeypatch.chdir(ROOT)
+        monkeypatch.syspath_prepend(str(ROOT / "tests"))
+        exec("import jax, jax.numpy as jnp, numpy as np, jaxdyn", namespace)
+        for page, block in blocks:
+            if "jax.distributed.initialize" in block:
+                continue
+            for key, context in _CONTEXT.items():
+                if key in block:
+                    exec(context, namespace)
+            try:
+                exec(compile(block, page, "exec"), namespace)
+            except Exception as error:
+                raise AssertionError(f"a block of {page} failed:\n{block}") from error
+            if not ran:
+                namespace["quickstart"] = tuple(namespace[k]
+                                                for k in ("pendulum", "p", "q0", "qd0"))
+            ran.append(page)
+            after[page, block.splitlines()[0]] = dict(namespace)
+    return blocks, ran, after
+
+
+def test_the_guides_code_runs(guides):
+    blocks, ran, _ = guides
+    assert len(ran) == len(blocks) - 1
+
+
+def test_the_contact_guides_anymal_settles_on_its_feet(guides):
+    """The contact guide's ANYmal-C (example-robot-data), its joints held at a standing
+    posture by PD control, dropped from 0.1 m above its standing height: after a second the
+    feet's vertical forces sum to its weight (the URDF's masses), its feet do not slide and it
+    stands at its height. (Its program, compiled for the guide, is shared here.)"""
+    scene = guides[2]["docs/guides/contact.md",
+                  'path = jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/'
+                  'anymal.urdf")']
+    tree, p, feet, sol, q0 = (scene[k] for k in ("tree", "p", "feet", "sol", "q0"))
+    soles = [float(jaxdyn.frame_pose(tree, f.body, q0, p, point=f.point)[1][2]) - f.radius
+             for f in feet]
+    standing = float(q0[2]) - min(soles)  # the base's height with the lowest foot on the ground
+    assert abs(float(q0[2]) - standing - 0.1) < 0.01  # dropped from 0.1 m above it
+    weight = 9.81 * sum(float(link["mass"]) for link in p.values())
+    np.testing.assert_allclose(np.sum(np.asarray(sol.contact.force[-1, :, 2])), weight,
+                               rtol=1e-3)
+    assert np.all(np.asarray(sol.contact.normal_force[0]) == 0)  # dropped from the air
+    moved = np.asarray(sol.contact.position[-1, :, :2] - sol.contact.position[-2, :, :2])
+    assert np.max(np.abs(moved)) < 1e-4  # feet planted, not sliding
+    assert abs(float(sol.q[-1, 2]) - standing) < 0.02  # stands at its height
