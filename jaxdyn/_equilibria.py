@@ -8,6 +8,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._dynamics import AbstractDynamics, equations_of_motion
+from ._compile import filter_jit
 from ._errors import error_if, reports_state
 from ._form.controlled import find_controlled, with_inputs
 from ._state import check_vector, numbers_as_arrays
@@ -60,23 +61,38 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
     t, p = numbers_as_arrays((t, p), q.dtype)
     t = jnp.asarray(t, q.dtype)
     n = q.shape[0]
-    controlled = find_controlled(dynamics)
-    zeros_u = jnp.zeros((n if num_speeds is None else num_speeds,), q.dtype)
-    if controlled is None:
-        if r is not None or prescribed:
-            raise ValueError(f"{type(dynamics).__name__} declares no inputs: r and "
-                             "prescribed coordinates need jaxdyn.Controlled(dynamics, "
-                             "input_map).")
-        r = jnp.zeros((0,), q.dtype)
-    elif r is None:
-        r = controlled.input_values(t, q, zeros_u, p)
-    r = jnp.atleast_1d(jnp.asarray(r, q.dtype))
+    if find_controlled(dynamics) is None and (r is not None or prescribed):
+        raise ValueError(f"{type(dynamics).__name__} declares no inputs: r and "
+                         "prescribed coordinates need jaxdyn.Controlled(dynamics, "
+                         "input_map).")
     prescribed = dict(prescribed or {})
     fixed = np.array(sorted(int(i) for i in prescribed), dtype=np.int32)
     if np.any((fixed < 0) | (fixed >= n)):
         raise ValueError(f"prescribed names coordinates {fixed.tolist()}, but there are {n}.")
-    free = np.setdiff1d(np.arange(n), fixed).astype(np.int32)
     values = jnp.asarray([prescribed[int(i)] for i in fixed], q.dtype)
+    r = None if r is None else jnp.atleast_1d(jnp.asarray(r, q.dtype))
+    eps = float(jnp.finfo(q.dtype).eps)
+    rtol = float(np.sqrt(eps)) if rtol is None else rtol
+    atol = float(np.sqrt(eps)) if atol is None else atol
+    # One compiled program per system and shapes: a new guess, parameter or input reuses it.
+    q_out, r_out, size, steps = _equilibrium(
+        dynamics, t, q, p, r, values,
+        (tuple(fixed.tolist()), num_speeds, float(rtol), float(atol), int(max_steps)))
+    return Equilibrium(q=q_out, r=r_out, residual=size, num_steps=steps)
+
+
+@filter_jit
+def _equilibrium(dynamics, t, q, p, r, values, options):
+    fixed, num_speeds, rtol, atol, max_steps = options
+    n = q.shape[0]
+    controlled = find_controlled(dynamics)
+    zeros_u = jnp.zeros((n if num_speeds is None else num_speeds,), q.dtype)
+    if controlled is None:
+        r = jnp.zeros((0,), q.dtype)
+    elif r is None:
+        r = jnp.atleast_1d(controlled.input_values(t, q, zeros_u, p))
+    fixed = np.array(fixed, dtype=np.int32)
+    free = np.setdiff1d(np.arange(n), fixed).astype(np.int32)
     solve_inputs = fixed.size > 0
 
     def state(z):
@@ -92,9 +108,6 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
 
     z0 = jnp.concatenate([q[free], r if solve_inputs else r[:0]])
     equations = jax.eval_shape(residual, z0, None).shape[0]
-    eps = jnp.finfo(q.dtype).eps
-    rtol = float(np.sqrt(eps)) if rtol is None else rtol
-    atol = float(np.sqrt(eps)) if atol is None else atol
     if equations == z0.shape[0]:
         solution = optx.root_find(residual, optx.Newton(rtol=rtol, atol=atol), z0,
                                   max_steps=max_steps, throw=False)
@@ -107,4 +120,4 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
     failed = ~(size <= 100 * atol * scale) | ~jnp.all(jnp.isfinite(q_out))
     q_out = error_if(q_out, [(failed, _NOT_FOUND)],
                      {"the last iterate q": q_out, "r": r_out, "residual": size})
-    return Equilibrium(q=q_out, r=r_out, residual=size, num_steps=solution.stats["num_steps"])
+    return q_out, r_out, size, solution.stats["num_steps"]

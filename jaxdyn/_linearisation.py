@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._compile import filter_jit
 from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
 from ._form.controlled import find_controlled, with_inputs
@@ -283,7 +284,11 @@ def normal_modes(dynamics: AbstractDynamics, t, q, p=None, r=None) -> Modes:
     """
     q = check_vector(q, "q")
     t, p = numbers_as_arrays((t, p), q.dtype)
-    t = jnp.asarray(t, q.dtype)
+    return _normal_modes(dynamics, jnp.asarray(t, q.dtype), q, p, r)
+
+
+@filter_jit  # one program per system and shapes: new points and parameters reuse it
+def _normal_modes(dynamics, t, q, p, r) -> Modes:
     u = jnp.zeros_like(q)
     if sum(x.shape[0] for x in jax.eval_shape(lambda: dynamics.state_constraints(t, q, u, p))):
         raise ValueError("normal_modes needs independent coordinates; for a constrained "

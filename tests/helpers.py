@@ -6,6 +6,7 @@ derived by hand (or taken from the standard literature) and evaluated with
 NumPy. Tests cross them with `pytest.mark.parametrize("system", SYSTEMS, ids=SYSTEM_IDS)`.
 """
 
+import contextlib
 import dataclasses
 from typing import Callable
 
@@ -39,6 +40,21 @@ def assert_close(actual, desired, *, rtol, atol=0.0, err_msg=""):
     desired = np.asarray(desired)
     assert actual.shape == desired.shape, (actual.shape, desired.shape)
     np.testing.assert_allclose(actual, desired, rtol=rtol, atol=atol, err_msg=err_msg)
+
+
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiled: list = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kwargs: _compiled.append(event) if event == _COMPILE_EVENT
+    else None)
+
+
+@contextlib.contextmanager
+def compiles():
+    """Counts the programs XLA compiles inside the block: `with compiles() as count: ...`,
+    then `count()`."""
+    start = len(_compiled)
+    yield lambda: len(_compiled) - start
 
 
 def rotation_of(quaternion):

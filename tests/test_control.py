@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxdyn
+from helpers import compiles
 
 CART_POLE = dict(M=1.0, m=0.1, l=0.5, g=9.81)
 
@@ -135,7 +136,13 @@ def test_spring_mass_chain_sine_modes(n):
         stretches = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
         return 0.5 * p["k"] * jnp.sum(stretches**2)
 
-    modes = jaxdyn.normal_modes(jaxdyn.Lagrangian(T, V), 0.0, jnp.zeros(n), p)
+    system = jaxdyn.Lagrangian(T, V)
+    modes = jaxdyn.normal_modes(system, 0.0, jnp.zeros(n), p)
+    with compiles() as count:  # a new stiffness, given as a number, reuses the program
+        stiffer = jaxdyn.normal_modes(system, 0.0, jnp.zeros(n), dict(m=0.5, k=80.0))
+    assert count() == 0
+    np.testing.assert_allclose(stiffer.natural_frequencies, 2 * modes.natural_frequencies,
+                               rtol=1e-12)  # ω ∝ √k
     j = np.arange(1, n + 1)
     np.testing.assert_allclose(modes.natural_frequencies,
                                2 * np.sqrt(p["k"] / p["m"]) * np.sin(j * np.pi / (2 * (n + 1))),
@@ -176,7 +183,9 @@ def test_equilibria_of_a_pendulum_under_a_constant_torque():
     torque = 4.0
     found = jaxdyn.equilibrium(plant, jnp.array([0.1]), PENDULUM, jnp.array([torque]))
     np.testing.assert_allclose(found.q, [np.arcsin(torque / (m * g * l))], rtol=1e-12)
-    upright = jaxdyn.equilibrium(plant, jnp.array([2.9]), PENDULUM, jnp.array([torque]))
+    with compiles() as count:  # a new guess reuses the compiled solve
+        upright = jaxdyn.equilibrium(plant, jnp.array([2.9]), PENDULUM, jnp.array([torque]))
+    assert count() == 0
     np.testing.assert_allclose(upright.q, [np.pi - np.arcsin(torque / (m * g * l))],
                                rtol=1e-12)
     held = jaxdyn.equilibrium(plant, jnp.array([0.0]), PENDULUM, prescribed={0: 0.6})
