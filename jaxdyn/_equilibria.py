@@ -7,8 +7,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._dynamics import AbstractDynamics, equations_of_motion
 from ._compile import filter_jit
+from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
 from ._form.controlled import find_controlled, with_inputs
 from ._state import check_vector, numbers_as_arrays
