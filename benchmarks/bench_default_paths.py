@@ -163,6 +163,15 @@ def checks_in_loop(name, system, params, hand, q0, u0, rounds):
                         rounds=rounds)
     report("accelerations default / throw=False, vmap", name,
            times["default"] / times["throw=False"], 1.1)
+    eager = {"throw=False": lambda t, q, u, p: system.accelerations(t, q, u, p, throw=False),
+             "default": system.accelerations}
+    times = interleaved({k: (f, (t, q, u, p)) for k, f in eager.items()}, number=200,
+                        rounds=rounds)
+    # No target: the host reads one flag after the program (the targets are the two
+    # rows above); printed so that the price of a check with values is seen.
+    print(f"       called with values, not jitted (no target): default "
+          f"{times['default'] * 1e6:.1f} µs, throw=False {times['throw=False'] * 1e6:.1f} µs",
+          flush=True)
 
 
 def branch_floor(rounds):

@@ -20,7 +20,7 @@ from ._linalg import (
     solve,
     solve_mass_matrix,
 )
-from ._state import public_method
+from ._state import public_method, under_a_trace
 from ._unroll import Symbol, give_up_beyond, is_constant, structure, unrolled
 from ._unroll import straight_line_size as straight_line_program_size
 
@@ -202,13 +202,17 @@ class AbstractDynamics(eqx.Module):
         return unrolled(lambda *args: self.form_equations(*args)[1], t, q, u, p,
                         chunked=self.batch_in_chunks)
 
-    @public_method("(),(n),(m)->(m)")
-    def accelerations(self, t, q, u, p=None, *, throw: bool = True):
+    @public_method("(),(n),(m)->(m)", checked=True)
+    def accelerations(self, t, q, u, p=None, *, throw: bool | None = None):
         """u̇ = M⁻¹ f (an LDLᵀ factorisation of M).
 
-        Where M is singular or f not finite, `throw=True` raises an error that names the state
-        (t, q, u); `throw=False` returns NaN there instead, with no branch: the cheapest form
-        inside a compiled loop of your own (this is what `simulate` integrates).
+        Where M is singular or f not finite, the default raises an error that names the cause
+        and the state (t, q, u) when called with values, and returns NaN there inside your own
+        `jax.jit`, `vmap` or `grad`, where it costs nothing (`diagnose` then names the cause
+        of a NaN). `throw=True` raises inside your trace too (a branch that calls the host,
+        which in a scalar loop of your own costs a few evaluations of a small system's
+        equations); `throw=False` returns NaN everywhere, with no branch (what `simulate`
+        integrates).
         """
         check_static_indexing(self.user_functions, t, q, u, p)
         _, accelerations, singular, nonfinite = equations_of_motion(self, t, q, u, p)
@@ -225,6 +229,25 @@ class AbstractDynamics(eqx.Module):
 
         return error_if(accelerations, causes, (t, q, u),
                         failed=~jnp.all(jnp.isfinite(accelerations)))
+
+    def diagnose(self, t, q, u, p=None) -> str | None:
+        """Why M u̇ = f has no finite solution u̇ at a state, or None where it has one.
+
+        The message `accelerations` raises by default when called with values: the cause (a
+        non-finite forcing, singular constraints, a singular or indefinite mass matrix) with
+        its likely reasons, ending with the state, "It happened at t = …, q = […], u = […]."
+        (the first failing one of stacked states). For a NaN that came out of your own
+        `jax.jit`, `vmap` or `grad`, where failures are carried as values: pass the state
+        that gave it. Reads values, so it is called outside a trace.
+        """
+        if under_a_trace():
+            raise ValueError("diagnose reads the values of the state: call it outside "
+                             "jax.jit, vmap and grad, with the state that gave a NaN.")
+        try:
+            self.accelerations(t, q, u, p, throw=True)
+        except RuntimeError as failure:
+            return str(failure)
+        return None
 
     @public_method("(),(n),(m),(m)->(m)")
     def residual(self, t, q, u, ud, p=None):

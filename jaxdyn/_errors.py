@@ -9,6 +9,7 @@ caller's own `jax.jit` the message (with the state) still appears in JAX's runti
 """
 
 import functools
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar, overload
 
@@ -25,6 +26,19 @@ _where: list[str] = []  # host-side: the message of the first failed check of th
 
 class _CheckFailed(RuntimeError):
     """Raised on the host by a failed check."""
+
+
+class _QuietChecks(logging.Filter):
+    """JAX logs every exception raised by a host callback, with its traceback, before passing
+    it on as a runtime error. A failed check is such an exception on purpose, and its message
+    reaches the caller as jaxdyn's own error: the log would print it a second time, with the
+    paths of jaxdyn's files, even when the caller catches the error."""
+
+    def filter(self, record):
+        return not (record.exc_info and isinstance(record.exc_info[1], _CheckFailed))
+
+
+logging.getLogger("jax._src.callback").addFilter(_QuietChecks())
 
 
 def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=None, *,

@@ -13,6 +13,7 @@ import jax
 import jax.core
 import jax.numpy as jnp
 import numpy as np
+from jax._src import core as jax_core
 
 from ._chunking import chunked_vmap
 from ._compile import filter_jit
@@ -187,29 +188,63 @@ def state_dtype(*candidates):
     return jnp.result_type(float)
 
 
-def public_method(signature: str):
+def under_a_trace() -> bool:
+    """Whether a JAX transformation (`jax.jit`, `vmap`, `grad`) is tracing the caller, so that
+    values are not at hand."""
+    return not jax_core.trace_state_clean()
+
+
+def public_method(signature: str, *, checked: bool = False):
     """A public method on states: `over_states` broadcasting, compiled once per system and
     argument shapes (and reused on every later call, also when called outside `jax.jit`),
     with errors that name the failing state (`reports_state`).
 
     Inside a caller's `jax.jit`, `vmap` or `grad` it is traced once and inlined.
+
+    `checked`: the method takes `throw` (True: a value-dependent check inside the program,
+    whose failing branch raises from the host; False: NaN where the result fails, no branch).
+    Its default, None, costs nothing in either place a method is called from. Called eagerly
+    the program carries no branch and the host reads one flag, "all finite", from the result
+    (its values are on the host's doorstep anyway); only when that flag is down does the
+    checked program run, to name the cause and the state. Inside a caller's trace (their
+    `jax.jit`, `vmap`, `grad`) a failure is carried as a value, NaN, as with `throw=False`: a
+    check's host callback there would keep XLA from compiling a small loop as one function
+    and cost several evaluations of the equations per iteration.
     """
     names = _state_names(signature)
 
     def decorator(method):
         broadcast = over_states(signature)(method)
 
-        @filter_jit
-        def compiled(self, args, options):
+        def evaluate(self, args, options):
             if len(args) > len(names):  # dtypes are static: checked when traced
                 check_parameter_dtypes(args[-1], state_dtype(*args[1:]))
             return broadcast(self, *args, **dict(options))
 
+        compiled = filter_jit(evaluate)
+
+        @filter_jit
+        def flagged(self, args, options):
+            out = evaluate(self, args, options)
+            return out, jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf))
+                                           for leaf in jax.tree_util.tree_leaves(out)]))
+
         @functools.wraps(method)
         def wrapper(self, *args, **kwargs):
+            throw = kwargs.pop("throw", None) if checked else False
             options = tuple((k, v) for k, v in kwargs.items() if k != "p")
             args = _positional(method.__name__, names, args, kwargs)
-            return compiled(self, numbers_as_arrays(args, state_dtype(*args[1:])), options)
+            args = numbers_as_arrays(args, state_dtype(*args[1:]))
+            if throw is not None or not checked:
+                return compiled(self, args, options + ((("throw", throw),) if checked else ()))
+            unchecked = options + (("throw", False),)
+            if under_a_trace():  # inside the caller's trace: NaN on failure
+                return compiled(self, args, unchecked)
+            out, finite = flagged(self, args, unchecked)
+            if bool(finite):
+                return out
+            # Only now, with the failure in hand: the checked program names cause and state.
+            return compiled(self, args, options + (("throw", True),))
 
         return BoundOnce(reports_state(wrapper, block=False))  # `compiled`: ready results
 

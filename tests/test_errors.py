@@ -5,6 +5,7 @@ value-dependent problems (NaN input, singular mass matrix, non-finite forcing) â
 that names the state; solver failures â†’ a RESULTS member, raised unless throw=False.
 """
 
+import functools
 import os
 import re
 import subprocess
@@ -19,7 +20,7 @@ from hypothesis import given, settings, strategies as st
 
 import jaxdyn
 
-from helpers import PENDULUM
+from helpers import PENDULUM, compiles
 
 PEND = PENDULUM.dynamics
 P = PENDULUM.params
@@ -265,6 +266,46 @@ def test_singular_mass_matrix_in_a_batch_names_the_failing_state():
     with pytest.raises(RuntimeError, match=SINGULAR) as info:
         polar.accelerations(ts, qs, np.ones((3, 2)), {"m": 1.0})
     assert str(info.value).endswith("It happened at t = 1.0, q = [0.0, 0.5], u = [1.0, 1.0].")
+
+
+def test_inside_a_callers_jit_a_singular_state_is_nan_without_a_branch_and_diagnosed_after(
+        capfd):
+    """The default check costs nothing inside the caller's own trace: no host callback in
+    the program (so XLA may compile a loop around it as one function), NaN where M is
+    singular; `diagnose` then names the cause and the state. `throw=True` keeps the check
+    inside the trace. A failure raised on purpose leaves no traceback on stderr."""
+    def call(m, **options):
+        return PEND.accelerations(0.5, jnp.array([0.3]), jnp.array([2.0]), {**P, "m": m},
+                                  **options)
+
+    assert "callback" not in str(jax.make_jaxpr(call)(1.0))
+    assert "callback" in str(jax.make_jaxpr(functools.partial(call, throw=True))(1.0))
+    in_loop = jax.jit(call)
+    np.testing.assert_allclose(in_loop(1.0), [-P["g"] / P["l"] * np.sin(0.3)], rtol=1e-14)
+    assert np.isnan(in_loop(0.0)).all()
+    message = PEND.diagnose(0.5, np.array([0.3]), np.array([2.0]), {**P, "m": 0.0})
+    assert re.match(SINGULAR, message)
+    assert message.endswith("It happened at t = 0.5, q = [0.3], u = [2.0].")
+    assert PEND.diagnose(0.5, np.array([0.3]), np.array([2.0]), P) is None
+    with pytest.raises(Exception, match="The mass matrix is singular"):
+        jax.block_until_ready(jax.jit(functools.partial(call, throw=True))(0.0))
+    with pytest.raises(ValueError, match="diagnose reads the values"):
+        jax.jit(lambda m: PEND.diagnose(0.5, Q0, U0, {**P, "m": m}))(1.0)
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_checked_call_with_values_compiles_once_and_again_only_on_failure():
+    """Called with values, `accelerations` reads one finite flag on the host; a new state of
+    the same shapes compiles nothing, and only a failure compiles the checked program that
+    names it."""
+    state = (np.array([0.3]), np.array([0.0]))
+    PEND.accelerations(0.0, *state, P)
+    with compiles() as count:
+        for q in (0.1, 0.2, 0.4):
+            PEND.accelerations(0.0, np.array([q]), state[1], P)
+    assert count() == 0
+    with pytest.raises(RuntimeError, match=SINGULAR):
+        PEND.accelerations(0.0, *state, {**P, "m": 0.0})
 
 
 def test_nonfinite_forcing_plain_call():
