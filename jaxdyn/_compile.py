@@ -16,19 +16,46 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.core
+import jax.numpy as jnp
 import numpy as np
+from jax._src import core as jax_core
+
+from ._errors import checks_read_on_host
 
 
-def filter_jit(fn, compiler_options=None):
+def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
     """`eqx.filter_jit(fn)` (arrays traced, other leaves static; non-array outputs allowed)
     with a cached dispatch; outside a trace the outputs are ready when it returns.
     `compiler_options`: XLA's options for the programs compiled here (`jax.jit`'s).
+    `checks_on_host`: called with values, `fn`'s own checks (`jaxdyn._errors.error_if` at its
+    top level) are flags the host reads after the program, which then holds no host callback
+    (so that JAX's persistent compilation cache can keep it); only when one is up does the
+    program with the checks run, to raise its message. Under a trace, the checks stay inside.
 
     The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
     by identity, modules and numbers by value) and the shapes and dtypes of their arrays.
     Arguments with an unhashable non-array leaf take `eqx.filter_jit`'s own path. Under an
     outer trace (`jax.jit`, `vmap`, `grad`) both are the same inlined call.
     """
+    if checks_on_host:
+        checked = filter_jit(fn, compiler_options)
+
+        def reading_checks(*args):
+            with checks_read_on_host() as flags:
+                out = fn(*args)
+            return out, jnp.any(jnp.stack(flags)) if flags else np.False_
+
+        lean = filter_jit(reading_checks, compiler_options)
+
+        @functools.wraps(fn)
+        def on_host(*args):
+            if not jax_core.trace_state_clean():
+                return checked(*args)
+            out, failed = lean(*args)
+            return checked(*args) if bool(failed) else out
+
+        return on_host
+
     fallback = eqx.filter_jit(fn)
     cache: dict = {}
 

@@ -1,5 +1,7 @@
 """Equilibria: states at rest, u = 0 and u̇ = 0, found by optimistix."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -81,7 +83,7 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
     return Equilibrium(q=q_out, r=r_out, residual=size, num_steps=steps)
 
 
-@filter_jit
+@functools.partial(filter_jit, checks_on_host=True)
 def _equilibrium(dynamics, t, q, p, r, values, options):
     fixed, num_speeds, rtol, atol, max_steps = options
     n = q.shape[0]

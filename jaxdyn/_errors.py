@@ -8,8 +8,10 @@ into a plain `RuntimeError` with jaxdyn's message when it leaves a jaxdyn entry 
 caller's own `jax.jit` the message (with the state) still appears in JAX's runtime error.
 """
 
+import contextlib
 import functools
 import logging
+import sys
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar, overload
 
@@ -19,6 +21,7 @@ import jax
 import jax.core
 import jax.numpy as jnp
 import numpy as np
+from jax._src import core as jax_core
 from jax.experimental import checkify
 
 _where: list[str] = []  # host-side: the message of the first failed check of the current call
@@ -39,6 +42,45 @@ class _QuietChecks(logging.Filter):
 
 
 logging.getLogger("jax._src.callback").addFilter(_QuietChecks())
+
+
+# Programs being traced whose checks the host reads (`checks_read_on_host`): (trace, flags).
+_read_on_host: list[tuple[Any, list]] = []
+
+
+@contextlib.contextmanager
+def checks_read_on_host():
+    """Inside the trace of a program that is called with values: `error_if` at the program's
+    own level (not inside its loops, branches or vmaps) records its failure flag in the list
+    yielded, instead of a branch to the host, and passes its value through. The program then
+    holds no host callback (JAX's persistent compilation cache keeps only such programs);
+    whoever runs it reads the flags and, if one is up, runs the checked program for its
+    message (`jaxdyn._compile.filter_jit`, `checks_on_host`)."""
+    entry = (jax_core.unsafe_get_current_trace(), [])
+    _read_on_host.append(entry)
+    try:
+        yield entry[1]
+    finally:
+        _read_on_host.pop()
+
+
+@contextlib.contextmanager
+def library_checks_as_nan():
+    """Equinox's `error_if` (diffrax's checks of its arguments, such as save times in order)
+    traced as NaN in the result instead of a host callback, for a program that holds no host
+    callback so that JAX's persistent compilation cache can keep it. Only for programs whose
+    arguments jaxdyn has checked itself and whose failures send the call to the checked
+    program, where these checks raise as usual."""
+    module = sys.modules.get("equinox._errors")
+    previous = getattr(module, "EQX_ON_ERROR", None)
+    if previous != "raise":  # the user chose otherwise (or equinox moved it): leave it
+        yield
+        return
+    module.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        module.EQX_ON_ERROR = previous
 
 
 def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=None, *,
@@ -65,6 +107,9 @@ def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=N
     messages = tuple(check[1] for check in checks())
     if failed is None:
         failed = jnp.any(_preds(checks()))
+    if _read_on_host and _read_on_host[-1][0] is jax_core.unsafe_get_current_trace():
+        _read_on_host[-1][1].append(jnp.asarray(failed))
+        return x
     described = state if callable(state) else lambda: state
 
     def fail():

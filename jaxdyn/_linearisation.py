@@ -1,18 +1,20 @@
 """Linearisation about an operating point, and what a linear model tells: modes, stability,
 controllability and observability."""
 
+import functools
 from typing import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._compile import filter_jit
 from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
 from ._form.controlled import find_controlled, with_inputs
-from ._state import check_vector, numbers_as_arrays
+from ._state import check_vector, numbers_as_arrays, under_a_trace
 
 _NONFINITE = ("The linearisation is not finite: the equations of motion fail at the "
               "operating point (a singular mass matrix or non-finite forcing there).")
@@ -162,7 +164,21 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
     multibody systems", Multibody Syst. Dyn. 33 (2015).
     """
     q, u = check_vector(q, "q"), check_vector(u, "u")
-    t, p = numbers_as_arrays((t, p), q.dtype)
+    t, p, r = numbers_as_arrays((t, p, r), q.dtype)
+    independent = None if independent is None else tuple(int(i) for i in independent)
+    # The constraints' ranks (redundant constraints) decide the shapes of the model, so they
+    # are read on the host, from a small compiled program, when the values are at hand;
+    # inside the caller's trace the constraints are taken as independent.
+    ranks = None
+    if not under_a_trace():
+        ranks = tuple(_rank(values, matrix_shape) for values, matrix_shape in zip(
+            *_constraint_singular_values(dynamics, t, q, u, p)))
+    return _linearise(dynamics, t, q, u, p, r, output, independent, ranks)
+
+
+# One program per system, shapes, output function and ranks.
+@functools.partial(filter_jit, checks_on_host=True)
+def _linearise(dynamics, t, q, u, p, r, output, independent, ranks):
     t = jnp.asarray(t, q.dtype)
     n = q.shape[0]
     controlled = find_controlled(dynamics)
@@ -180,7 +196,7 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
 
     x = jnp.concatenate([q, u])
     a_full, b_full = state_jacobians(dynamics, t, q, u, p, r)
-    basis, selection, num_coordinates = _tangent_space(dynamics, t, q, u, p, independent)
+    basis, selection, num_coordinates = _tangent_space(dynamics, t, q, u, p, independent, ranks)
     a, b = selection @ a_full @ basis, selection @ b_full
     if output is None:
         c, d = jnp.eye(a.shape[0], dtype=q.dtype), jnp.zeros((a.shape[0], r.shape[0]), q.dtype)
@@ -191,9 +207,7 @@ def linearise(dynamics: AbstractDynamics, t, q, u, p=None, r=None, *,
     a = error_if(a, [(~jnp.all(jnp.isfinite(a)) | ~jnp.all(jnp.isfinite(b)), _NONFINITE)],
                  (t, q, u))
     return LinearModel(A=a, B=b, C=c, D=d, basis=basis, num_coordinates=num_coordinates,
-                       num_q=n,
-                       independent=None if independent is None else tuple(
-                           int(i) for i in independent))
+                       num_q=n, independent=independent)
 
 
 @eqx.filter_jit  # traced once per system and shapes
@@ -210,60 +224,84 @@ def state_jacobians(dynamics, t, q, u, p, r):
     return jax.jacfwd(field, argnums=(0, 1))(jnp.concatenate([q, u]), r)
 
 
-def _tangent_space(dynamics, t, q, u, p, independent):
+def _constraint_jacobians(dynamics, t, q, u, p):
+    """(Φ, G_q, G_u): Φ = ∂φ/∂q of the position constraints, G_q = ∂g/∂q and G_u = ∂g/∂u of
+    the velocity constraints; None for a system without constraints."""
+    phi, g = jax.eval_shape(lambda: dynamics.state_constraints(t, q, u, p))
+    if phi.shape[0] + g.shape[0] == 0:
+        return None
+    position = jax.jacfwd(lambda q: dynamics.state_constraints(t, q, u, p)[0])(q)
+    g_q, g_u = jax.jacfwd(lambda q, u: dynamics.state_constraints(t, q, u, p)[1],
+                          argnums=(0, 1))(q, u)
+    return position, g_q, g_u
+
+
+@filter_jit
+def _constraint_singular_values(dynamics, t, q, u, p):
+    """((σ(Φ), σ(G_u)), their matrices' shapes), or ((), ()) without constraints."""
+    jacobians = _constraint_jacobians(dynamics, t, q, u, p)
+    if jacobians is None:
+        return (), ()
+    position, _, g_u = jacobians
+    return (tuple(jnp.linalg.svd(a, compute_uv=False) if a.shape[0] else jnp.zeros(0, a.dtype)
+                  for a in (position, g_u)),
+            (position.shape, g_u.shape))
+
+
+def _rank(values, shape):
+    """The numerical rank of a matrix of `shape` from its singular values (descending), at
+    the relative tolerance max(shape) ε σ₁ (NumPy's `matrix_rank`)."""
+    values = np.asarray(values)
+    if values.size == 0:
+        return 0
+    tol = max(shape) * np.finfo(values.dtype).eps * max(float(values[0]), 1e-300)
+    return int(np.sum(values > tol))
+
+
+def _tangent_space(dynamics, t, q, u, p, independent, ranks):
     """(T, S, coordinates kept): a basis T of the perturbations δ[q; u] that the constraints
     allow, a left inverse S, and how many of the reduced states are coordinates; identities
-    for a system without constraints.
+    for a system without constraints. `ranks`: those of Φ and G_u, or None to take them as
+    full (independent constraints).
 
     With Φ = ∂φ/∂q and the velocity constraints' G_q = ∂g/∂q, G_u = ∂g/∂u, the admissible
     perturbations are δq = N_q a (N_q spanning null Φ) and δu = −G_u⁺ G_q N_q a + N_u b
     (N_u spanning null G_u): T = [[N_q, 0], [−G_u⁺ G_q N_q, N_u]], coordinates first."""
     n, m = q.shape[0], u.shape[0]
-    phi, g = jax.eval_shape(lambda: dynamics.state_constraints(t, q, u, p))
-    if phi.shape[0] + g.shape[0] == 0:
+    jacobians = _constraint_jacobians(dynamics, t, q, u, p)
+    if jacobians is None:
         if independent is not None:
             raise ValueError("independent selects coordinates of a constrained system; "
                              f"{type(dynamics).__name__} has no constraints.")
         eye = jnp.eye(n + m, dtype=q.dtype)
         return eye, eye, n
-    position = jax.jacfwd(lambda q: dynamics.state_constraints(t, q, u, p)[0])(q)
-    g_q, g_u = jax.jacfwd(lambda q, u: dynamics.state_constraints(t, q, u, p)[1],
-                          argnums=(0, 1))(q, u)
-    null_q, null_u = _null_space(position), _null_space(g_u)
+    position, g_q, g_u = jacobians
+    rank_q, rank_u = ranks if ranks is not None else (None, None)
+    null_q, null_u = _null_space(position, rank_q), _null_space(g_u, rank_u)
     coupling = (-jnp.linalg.pinv(g_u) @ g_q @ null_q if g_u.shape[0]
                 else jnp.zeros((m, null_q.shape[1]), q.dtype))
     basis = jnp.block([[null_q, jnp.zeros((n, null_u.shape[1]), q.dtype)],
                        [coupling, null_u]])
     if independent is None:
         return basis, basis.T, null_q.shape[1]
-    independent = [int(i) for i in independent]
     kept = sum(i < n for i in independent)
     if len(independent) != basis.shape[1] or kept != null_q.shape[1]:
         raise ValueError(
             f"independent must name {null_q.shape[1]} coordinates (indices 0…{n - 1}) and "
             f"{null_u.shape[1]} speeds (indices {n}…{n + m - 1}) of [q; u], the states the "
-            f"constraints leave free; got {independent}.")
+            f"constraints leave free; got {list(independent)}.")
     selection = jnp.eye(n + m, dtype=q.dtype)[jnp.asarray(independent)]
     return basis @ jnp.linalg.inv(selection @ basis), selection, kept
 
 
-def _null_space(matrix):
-    """An orthonormal basis (columns) of the null space of `matrix` (k, d), by the SVD; the
-    rank is read at a relative tolerance when the values are concrete (redundant rows),
-    else taken as min(k, d)."""
+def _null_space(matrix, rank=None):
+    """An orthonormal basis (columns) of the null space of `matrix` (k, d) of rank `rank`
+    (None: min(k, d)), by the SVD."""
     d = matrix.shape[1]
     if matrix.shape[0] == 0:
         return jnp.eye(d, dtype=matrix.dtype)
-    _, singular, vt = jnp.linalg.svd(matrix, full_matrices=True)
-    rank = min(matrix.shape)
-    try:
-        values = [float(x) for x in singular]
-    except (jax.errors.ConcretizationTypeError, TypeError):
-        values = None
-    if values is not None:
-        tol = max(matrix.shape) * float(jnp.finfo(matrix.dtype).eps) * max(values[0], 1e-300)
-        rank = sum(v > tol for v in values)
-    return vt[rank:].T
+    _, _, vt = jnp.linalg.svd(matrix, full_matrices=True)
+    return vt[min(matrix.shape) if rank is None else rank:].T
 
 
 @reports_state
@@ -287,7 +325,8 @@ def normal_modes(dynamics: AbstractDynamics, t, q, p=None, r=None) -> Modes:
     return _normal_modes(dynamics, jnp.asarray(t, q.dtype), q, p, r)
 
 
-@filter_jit  # one program per system and shapes: new points and parameters reuse it
+# One program per system and shapes: new points and parameters reuse it.
+@functools.partial(filter_jit, checks_on_host=True)
 def _normal_modes(dynamics, t, q, p, r) -> Modes:
     u = jnp.zeros_like(q)
     if sum(x.shape[0] for x in jax.eval_shape(lambda: dynamics.state_constraints(t, q, u, p))):

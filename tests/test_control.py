@@ -214,6 +214,30 @@ def test_constrained_pendulum_in_independent_coordinates():
     np.testing.assert_allclose(found.q, bottom, atol=1e-10)
 
 
+def test_linearise_reads_the_rank_of_redundant_constraints_and_compiles_once():
+    """The rod stated twice (φ and 2φ: rank 1 of 2 rows) leaves one coordinate and one speed:
+    about the bottom ω = √(g/l). A new operating point, or a new parameter given as a number,
+    compiles nothing (the rank is read on the host, the program kept)."""
+    def rod(q, p):
+        row = q @ q - p["l"] ** 2
+        return jnp.stack([row, 2 * row])
+
+    system = jaxdyn.Constrained(
+        jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
+                          lambda q, p: p["m"] * p["g"] * q[1]),
+        holonomic=rod, redundant="least_squares")
+    p = dict(m=1.0, g=9.81, l=2.0)
+    model = jaxdyn.linearise(system, 0.0, np.array([0.0, -2.0]), np.zeros(2), p)
+    assert model.A.shape == (2, 2) and model.num_coordinates == 1
+    np.testing.assert_allclose(model.modes().natural_frequencies, np.sqrt(p["g"] / p["l"]),
+                               rtol=1e-12)
+    with compiles() as count:
+        for angle, g in ((0.2, 9.81), (0.4, 9.7)):
+            at = 2.0 * np.array([np.sin(angle), -np.cos(angle)])
+            jaxdyn.linearise(system, 0.0, at, np.zeros(2), dict(p, g=g))
+    assert count() == 0
+
+
 def test_sympy_linearizer_on_a_constrained_pendulum():
     """sympy.physics.mechanics' nonminimal-coordinates pendulum (Lagrange's method with the
     constraint q₁² + q₂² = L²), gravity tilted by β so that the equilibrium at angle β

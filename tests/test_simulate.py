@@ -1,6 +1,11 @@
 """`jaxdyn.simulate` against exact solutions, an independent integrator (SciPy) and
 conservation laws."""
 
+import json
+import subprocess
+import sys
+import textwrap
+
 import diffrax
 import equinox as eqx
 import jax
@@ -389,3 +394,45 @@ def test_a_repeated_call_reuses_the_compiled_solve():
     jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0}, t1=0.5,
                     save="q")
     assert len(traced) > count
+
+
+def test_programs_called_with_values_are_kept_by_the_persistent_compilation_cache(tmp_path):
+    """Called with values, `simulate`, `accelerations`, `linearise`, `normal_modes` and
+    `equilibrium` compile programs without host callbacks (their checks are read on the
+    host), which JAX's persistent compilation cache keeps: a second process compiles none of
+    them again."""
+    script = textwrap.dedent(f"""
+        import collections, json
+        import jax, jax.numpy as jnp, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        jax.config.update("jax_compilation_cache_dir", {str(tmp_path)!r})
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+        import jaxdyn
+        events = collections.Counter()
+        jax.monitoring.register_event_listener(lambda e, **k: events.update([e]))
+        pendulum = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd,
+                                     lambda q, p: -p["g"] * jnp.cos(q[0]))
+        plant = jaxdyn.Controlled(pendulum, input_map=[0])
+        q, u, p = np.array([0.3]), np.zeros(1), {{"g": 9.81}}
+        jaxdyn.simulate(pendulum, q, u, p, t1=1.0, ts=np.linspace(0.0, 1.0, 3))
+        pendulum.accelerations(0.0, q, u, p)
+        jaxdyn.linearise(plant, 0.0, q, u, p)
+        jaxdyn.normal_modes(pendulum, 0.0, np.zeros(1), p)
+        jaxdyn.equilibrium(plant, q, p, prescribed={{0: 0.3}})
+        print(json.dumps({{
+            "requests": events["/jax/compilation_cache/compile_requests_use_cache"],
+            "hits": events["/jax/compilation_cache/cache_hits"],
+            "misses": events["/jax/compilation_cache/cache_misses"]}}))
+    """)
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first = run()
+    assert first["requests"] >= 5 and first["hits"] + first["misses"] == first["requests"], first
+    second = run()  # (a program with a host callback is asked for, but neither hit nor kept)
+    assert second["hits"] == second["requests"] == first["requests"], second
+    assert second["misses"] == 0, second

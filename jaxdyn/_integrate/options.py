@@ -57,18 +57,25 @@ def check_tolerances(rtol, atol):
             raise ValueError(problem)
 
 
-def checked_tolerances(rtol, atol):
+def tolerance_checks(rtol, atol):
+    """[(pred, message)]: the tolerances' value-dependent check (none when either is None)."""
     if rtol is None or atol is None:
-        return rtol, atol
+        return []
     bad = (~jnp.isfinite(rtol) | ~jnp.isfinite(atol) | (rtol < 0) | (atol < 0)
            | (rtol + atol == 0))
-    return error_if((rtol, atol), [(bad, "rtol and atol must be finite and ≥ 0, and not both "
-                                         "0.")], {"rtol": rtol, "atol": atol})
+    return [(bad, "rtol and atol must be finite and ≥ 0, and not both 0.")]
 
 
-def checked_save_times(ts, t0, t1):
-    """`ts`, or an error if they are not 1-D, leave [t0, t1], or run against the direction of
-    integration (a value-dependent check: one branch, taken on failure)."""
+def checked_tolerances(rtol, atol):
+    checks = tolerance_checks(rtol, atol)
+    return error_if((rtol, atol), checks, {"rtol": rtol, "atol": atol}) if checks else (
+        rtol, atol)
+
+
+def save_time_checks(ts, t0, t1):
+    """[(pred, message)]: whether the save times `ts` hold NaN or inf, leave [t0, t1], or run
+    against the direction of integration; a `ValueError` at trace time if they are not a
+    non-empty 1-D array."""
     if ts.ndim != 1:
         raise ValueError(f"ts must be a 1-D array of save times, got shape {ts.shape}.")
     if ts.shape[0] == 0:
@@ -76,12 +83,17 @@ def checked_save_times(ts, t0, t1):
     direction = jnp.where(t1 >= t0, 1, -1).astype(ts.dtype)
     outside = jnp.any((ts - t0) * direction < 0) | jnp.any((ts - t1) * direction > 0)
     against = jnp.any(jnp.diff(ts) * direction < 0)
-    return error_if(ts, [
-        (~jnp.all(jnp.isfinite(ts)), "ts contains NaN or inf."),
-        (outside, "ts must lie within the interval from t0 to t1."),
-        (against, "ts must run in the direction of integration: increasing for t1 > t0, "
-                  "decreasing for t1 < t0.")],
-        {"t0": t0, "t1": t1, "ts[0]": ts[0], "ts[-1]": ts[-1]})
+    return [(~jnp.all(jnp.isfinite(ts)), "ts contains NaN or inf."),
+            (outside, "ts must lie within the interval from t0 to t1."),
+            (against, "ts must run in the direction of integration: increasing for t1 > t0, "
+                      "decreasing for t1 < t0.")]
+
+
+def checked_save_times(ts, t0, t1):
+    """`ts`, or an error if they fail `save_time_checks` (a value-dependent check: one branch,
+    taken on failure)."""
+    return error_if(ts, save_time_checks(ts, t0, t1),
+                    {"t0": t0, "t1": t1, "ts[0]": ts[0], "ts[-1]": ts[-1]})
 
 
 def step_budget(max_steps, t0, t1, dt0, stepsize_controller):

@@ -1,5 +1,6 @@
 """`simulate`: the single jit-compiled entry point that integrates any dynamics with diffrax."""
 
+import contextlib
 import functools
 
 import diffrax
@@ -16,7 +17,12 @@ from .._dynamics import (
     mass_matrix_blocks,
     straight_line_size,
 )
-from .._errors import check_finite, check_static_indexing, reports_state
+from .._errors import (
+    check_finite,
+    check_static_indexing,
+    library_checks_as_nan,
+    reports_state,
+)
 from .._form.controlled import find_controlled, with_inputs
 from .._linalg import factorise
 from .._runge_kutta import UnrolledStages
@@ -30,7 +36,9 @@ from .options import (
     checked_save_times,
     checked_tolerances,
     fixed_steps,
+    save_time_checks,
     step_budget,
+    tolerance_checks,
 )
 from .events import MAX_EVENTS, can_rest, check_events
 from .solve import Layout, Projected, solve, vector_field
@@ -173,9 +181,13 @@ def simulate(
         if isinstance(x, jax.core.Tracer)])
 
     def run(budget, lean):
-        return _simulate(dynamics, q0, u0, numbers, (dense, save, solver, stepsize_controller,
-                                                     budget, adjoint, throw, reachable, lean,
-                                                     events, max_events))
+        # A lean program holds no host callback (JAX's persistent compilation cache keeps
+        # it): its failures, diffrax's checks of arguments included, send the call on to the
+        # full program.
+        with library_checks_as_nan() if lean else contextlib.nullcontext():
+            return _simulate(dynamics, q0, u0, numbers, (
+                dense, save, solver, stepsize_controller, budget, adjoint, throw, reachable,
+                lean, events, max_events))
 
     if not all(_concrete_value(x) is not None
                for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
@@ -241,8 +253,15 @@ def _simulate(dynamics, q0, u0, numbers, options):
     _check_shapes(dynamics, t0, q0, u0, p)
     if isinstance(solver, AbstractStructurePreserving):
         solver.check(dynamics, t0, q0, u0, p)
-    rtol, atol = checked_tolerances(rtol, atol)
-    if throw:
+    # The lean program (called with values) carries no check that calls the host: its
+    # invalid arguments only make it fail, and the full program, run then, names them. So it
+    # holds no host callback, which also lets JAX's persistent compilation cache keep it.
+    invalid = []
+    if lean:
+        invalid += [pred for pred, _ in tolerance_checks(rtol, atol)]
+    else:
+        rtol, atol = checked_tolerances(rtol, atol)
+    if throw and not lean:
         q0, u0, p = check_finite(q0=q0, u0=u0, p=p)
         nonfinite_input = None
     else:  # its own result code, so that a vmapped batch is not stopped by one member
@@ -269,7 +288,11 @@ def _simulate(dynamics, q0, u0, numbers, options):
     if ts is None:
         requested = diffrax.SubSaveAt(t1=True, fn=observe)
     else:
-        ts = checked_save_times(jnp.asarray(ts, dtype), t0, t1)
+        ts = jnp.asarray(ts, dtype)
+        if lean:
+            invalid += [pred for pred, _ in save_time_checks(ts, t0, t1)]
+        else:
+            ts = checked_save_times(ts, t0, t1)
         requested = diffrax.SubSaveAt(ts=ts, fn=observe)
     # The last state reached is saved too: where the solve stops early, it is the state from
     # which the failure is diagnosed.
@@ -322,6 +345,8 @@ def _simulate(dynamics, q0, u0, numbers, options):
         result, failure = diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
                                     stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
         result = RESULTS.where(stalled, result, _promoted(solution.result))
+    if invalid:  # (lean only) the full program, run on failure, names the argument
+        nonfinite_input = nonfinite_input | jnp.any(jnp.stack(invalid))
     if nonfinite_input is not None:
         result = RESULTS.where(nonfinite_input, RESULTS.nonfinite_state_or_parameters, result)
         q, u = (None if x is None else jnp.where(nonfinite_input, jnp.nan, x) for x in (q, u))
