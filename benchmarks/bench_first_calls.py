@@ -14,7 +14,11 @@ values of the same shapes (a new state, guess or parameter), which should compil
   `linearise` and `normal_modes` about the bottom;
 - `equilibrium` of the cart-pole with the cart held at x = 0 (the input is solved for);
 - `fit` of a damped oscillator's stiffness and damping to 101 samples of its position
-  (a result within 5 s is the issue's target for systems of up to three coordinates).
+  (a result within 5 s is the issue's target for systems of up to three coordinates);
+- with `--robots`: the Panda, UR5, ANYmal-C, G1 and Talos from example-robot-data, loaded by
+  `from_urdf` (parameters traced), then the first call of forward dynamics
+  (`ArticulatedBody.accelerations`), inverse dynamics (`residual`), a frame's pose and
+  Jacobian, and the inverse-dynamics regressor, each timed (target: 3 s a call).
 
 With `--cache`, each row runs again in two more processes sharing JAX's persistent
 compilation cache (a fresh directory): the second process's first call is what a user who
@@ -22,6 +26,7 @@ enabled the cache waits for in every later session.
 
 Run:  python benchmarks/bench_first_calls.py           (about 1 minute)
       python benchmarks/bench_first_calls.py --cache   (about 2 minutes)
+      python benchmarks/bench_first_calls.py --robots  (adds the five robots: 2 minutes)
       python benchmarks/bench_first_calls.py --check   (exit 1 when a row misses its target)
 """
 
@@ -127,6 +132,37 @@ ROWS = {
 }
 FIT_TARGET_SECONDS = 5.0
 
+# The five robots of example-robot-data that the benchmarks use (`bench_trees.ROBOTS`): the
+# URDF, whether the base floats, a frame.
+ROBOTS = [("panda_description/urdf/panda.urdf", False, "panda_hand"),
+          ("ur_description/urdf/ur5_robot.urdf", False, "tool0"),
+          ("anymal_c_simple_description/urdf/anymal.urdf", True, "LF_FOOT"),
+          ("g1_description/urdf/g1_29dof_rev_1_0.urdf", True, "left_rubber_hand"),
+          ("talos_data/robots/talos_full_v2.urdf", True, "gripper_left_base_link")]
+ROBOT_TARGET_SECONDS = 3.0
+
+ROBOT = """
+import numpy as np
+start = time.perf_counter()
+tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf({name!r}), floating={floating})
+robot = jaxdyn.ArticulatedBody(tree)
+times = {{"loading the URDF": time.perf_counter() - start}}
+q = np.asarray(tree.neutral_configuration())
+u, ud = np.full(tree.num_speeds, 0.1), np.full(tree.num_speeds, 0.2)
+calls = {{
+    "forward dynamics": lambda: robot.accelerations(0.0, q, u, p),
+    "inverse dynamics": lambda: robot.residual(0.0, q, u, ud, p),
+    "frame pose and Jacobian": lambda: (jaxdyn.frame_pose(tree, {frame!r}, q, p),
+                                        jaxdyn.frame_jacobian(tree, {frame!r}, q, p)),
+    "regressor": lambda: jaxdyn.inverse_dynamics_regressor(tree, q, u, ud, p),
+}}
+for what, call in calls.items():
+    start = time.perf_counter()
+    jax.block_until_ready(call())
+    times[what] = time.perf_counter() - start
+print(json.dumps(times))
+"""
+
 
 CACHE = """
 jax.config.update("jax_compilation_cache_dir", {directory!r})
@@ -144,6 +180,7 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--check", action="store_true")
     parser.add_argument("--cache", action="store_true")
+    parser.add_argument("--robots", action="store_true")
     args = parser.parse_args()
     floors = {"forward": fresh(FLOOR)["first"], "gradient": fresh(GRADIENT_FLOOR)["first"]}
     print(f"{'call':46s} {'first':>8s} {'/ floor':>8s} {'later':>9s}  target")
@@ -172,6 +209,17 @@ def main():
                 fresh(code, prelude)
                 row = fresh(code, prelude)
             print(f"{name:46s} {row['first']:7.2f}s", flush=True)
+    if args.robots:
+        print(f"\nRobots (example-robot-data), first calls in a fresh process each; target "
+              f"{ROBOT_TARGET_SECONDS:.0f} s a call")
+        for name, floating, frame in ROBOTS:
+            times = fresh(ROBOT.format(name=name, floating=floating, frame=frame))
+            late = [what for what, seconds in times.items()
+                    if what != "loading the URDF" and seconds > ROBOT_TARGET_SECONDS]
+            missed += bool(late)
+            print(f"{name.split('/')[-1]:24s} " + ", ".join(
+                f"{what} {seconds:.2f} s" for what, seconds in times.items())
+                + ("" if not late else "  MISS"), flush=True)
     if args.check and missed:
         sys.exit(1)
 

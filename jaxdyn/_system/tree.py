@@ -324,29 +324,35 @@ class _Welded(eqx.Module):
     part: str = eqx.field(static=True)
 
     def __call__(self, p):
+        # As arrays over the welded links (stacked), not a Python sum per link: ANYmal-C's 65
+        # welded links written out per link were 45 % of its forward dynamics' program.
         masses = [jnp.asarray(_value(link.mass, p)) for link in self.links]
         dtype = jnp.result_type(*masses, float)
-        mass = sum(masses[1:], masses[0])
+        masses = jnp.stack(masses).astype(dtype)
+        mass = jnp.sum(masses)
         if self.part == "mass":
             return mass
-        centres = [jnp.asarray(r, dtype) + jnp.asarray(rot, dtype) @ jnp.asarray(
-            _value(link.com, p), dtype) for link, rot, r in
-            zip(self.links, self.rotations, self.translations)]
-        first = sum((m * c for m, c in zip(masses, centres)), jnp.zeros(3, dtype))
+        rotations = np.stack(self.rotations).astype(dtype)
+        centres = np.stack(self.translations).astype(dtype) + jnp.einsum(
+            "kij,kj->ki", rotations,
+            jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links]))
+        first = masses @ centres
         # Massless bodies (URDF's dummy links) have their centre at the origin: a safe divisor
         # keeps the derivative finite where the mass is zero.
         massless = mass == 0
         centre = jnp.where(massless, 0.0, first / jnp.where(massless, 1.0, mass))
         if self.part == "com":
             return centre
+        with_inertia = [k for k, link in enumerate(self.links) if link.inertia is not None]
         total = jnp.zeros((3, 3), dtype)
-        for link, m, c, rot in zip(self.links, masses, centres, self.rotations):
-            rot = jnp.asarray(rot, dtype)
-            if link.inertia is not None:
-                total = total + rot @ jnp.asarray(_value(link.inertia, p), dtype) @ rot.T
-            d = c - centre
-            total = total + m * (jnp.dot(d, d) * jnp.eye(3, dtype=dtype) - jnp.outer(d, d))
-        return total
+        if with_inertia:
+            inertias = jnp.stack([jnp.asarray(_value(self.links[k].inertia, p), dtype)
+                                  for k in with_inertia])
+            turned = rotations[np.asarray(with_inertia)]
+            total = jnp.einsum("kij,kjl,kml->im", turned, inertias, turned)
+        d = centres - centre[None, :]
+        return total + (masses @ jnp.sum(d * d, axis=1)) * jnp.eye(3, dtype=dtype) - jnp.einsum(
+            "k,ki,kj->ij", masses, d, d)
 
 
 class RigidBodyTree(AbstractMultibody):
