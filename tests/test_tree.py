@@ -20,7 +20,8 @@ import jaxdyn
 import jaxdyn._chunking
 import jaxdyn._system.tree
 
-from helpers import assert_close, central_difference, central_difference_params
+from helpers import (PENDULUM, assert_close, central_difference, central_difference_params,
+                     compiles)
 
 pin = pytest.importorskip("pinocchio")
 yourdfpy = pytest.importorskip("yourdfpy")
@@ -581,3 +582,32 @@ def test_reverse_mode_through_the_articulated_body_algorithm():
     assert_close(linear(direction), central, rtol=1e-6, atol=1e-6)
     gradient = jax.grad(lambda q: jnp.sum(accelerations(q)))(q)
     assert_close(gradient @ direction, jnp.sum(central), rtol=1e-6, atol=1e-6)
+
+
+def test_later_calls_of_the_robotics_functions_and_a_gradient_compile_nothing():
+    """Called again with a new state of the same shapes, the articulated-body algorithm,
+    inverse dynamics, a frame's pose and Jacobian, the regressor and a gradient through
+    `simulate` reuse their programs (XLA's compile events counted)."""
+    tree = chain_tree(3)
+    robot = jaxdyn.ArticulatedBody(tree)
+
+    def loss(q0):  # a pendulum's: the same path through `simulate`, less to compile
+        return jnp.sum(jaxdyn.simulate(PENDULUM.dynamics, q0[:1], np.zeros(1), PENDULUM.params,
+                                       t1=0.5).q[-1] ** 2)
+
+    gradient = jax.grad(loss)
+
+    def calls(q):
+        u, ud = np.full(3, 0.2), np.full(3, -0.1)
+        return (robot.accelerations(0.0, q, u), robot.residual(0.0, q, u, ud),
+                jaxdyn.frame_pose(tree, "rod2", q), jaxdyn.frame_jacobian(tree, "rod2", q),
+                jaxdyn.inverse_dynamics_regressor(tree, q, u, ud), gradient(q))
+
+    first = calls(np.array([0.1, 0.2, 0.3]))
+    with compiles() as count:
+        second = calls(np.array([0.4, -0.2, 0.1]))
+    assert count() == 0
+    # The new state was used: inverse dynamics of the forward dynamics' accelerations is zero.
+    np.testing.assert_allclose(robot.residual(0.0, np.array([0.4, -0.2, 0.1]), np.full(3, 0.2),
+                                              second[0]), 0.0, atol=1e-12)
+    assert not np.allclose(first[1], second[1])
