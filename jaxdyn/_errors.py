@@ -71,7 +71,7 @@ def library_checks_as_nan():
     callback so that JAX's persistent compilation cache can keep it. Only for programs whose
     arguments jaxdyn has checked itself and whose failures send the call to the checked
     program, where these checks raise as usual."""
-    module = sys.modules.get("equinox._errors")
+    module: Any = sys.modules.get("equinox._errors")
     previous = getattr(module, "EQX_ON_ERROR", None)
     if previous != "raise":  # the user chose otherwise (or equinox moved it): leave it
         yield

@@ -346,6 +346,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
                                     stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
         result = RESULTS.where(stalled, result, _promoted(solution.result))
     if invalid:  # (lean only) the full program, run on failure, names the argument
+        assert nonfinite_input is not None  # a lean program stands in for non-finite inputs
         nonfinite_input = nonfinite_input | jnp.any(jnp.stack(invalid))
     if nonfinite_input is not None:
         result = RESULTS.where(nonfinite_input, RESULTS.nonfinite_state_or_parameters, result)
