@@ -549,8 +549,9 @@ def test_tree_errors():
 
 
 def test_example_robots_are_found_by_name():
-    """`jaxdyn.example_robot_urdf` finds example-robot-data's files by name, unique prefix or
-    path ending, and names the candidates when a name is ambiguous or unknown."""
+    """`jaxdyn.example_robot_urdf` finds example-robot-data's files by name, robot, unique
+    prefix or path ending, and names the candidates when a name is ambiguous or unknown, by
+    names that each find one file."""
     panda = jaxdyn.example_robot_urdf("panda")
     assert panda.endswith("panda_description/urdf/panda.urdf") and os.path.isfile(panda)
     assert jaxdyn.example_robot_urdf("ur5").endswith("ur_description/urdf/ur5_robot.urdf")
@@ -558,9 +559,14 @@ def test_example_robots_are_found_by_name():
     assert tree.num_speeds == 9  # seven arm joints and two fingers
     with pytest.raises(ValueError, match="anymal_b_simple_description.*anymal_c_simple"):
         jaxdyn.example_robot_urdf("anymal")
-    assert jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
-    with pytest.raises(ValueError, match="No example robot is named 'hal9000'.*panda"):
+    anymal_c = jaxdyn.example_robot_urdf("anymal_c_simple_description/urdf/anymal.urdf")
+    assert jaxdyn.example_robot_urdf("anymal_c") == anymal_c  # its robot's one file
+    with pytest.raises(ValueError, match="No example robot is named 'hal9000'.*panda") as info:
         jaxdyn.example_robot_urdf("hal9000")
+    # Every name the error offers finds one file, a different one each.
+    offered = str(info.value).split("the collection has: ")[1].rstrip(".").split(", ")
+    found = {jaxdyn.example_robot_urdf(name) for name in offered}
+    assert len(found) == len(offered) > 60 and anymal_c in found
 
 
 def test_reverse_mode_through_the_articulated_body_algorithm():

@@ -45,6 +45,8 @@ class ForceInput(eqx.Module):
     directions: Any = None
 
     def matrix(self, controlled, t, q, p, num_speeds):
+        """B (m, k) = (∂v_P/∂u)ᵀ D at (t, q) for the `Controlled` system `controlled`, whose
+        dynamics has `num_speeds` speeds m (called by `Controlled`, not by users)."""
         rates = _speed_map(controlled.dynamics, t, q, p, num_speeds)  # K (n, m)
         point = lambda q: jnp.asarray(self.point(q, p))  # noqa: E731
         shape = jax.eval_shape(point, q).shape
@@ -77,6 +79,8 @@ class TorqueInput(eqx.Module):
     directions: Any = None
 
     def matrix(self, controlled, t, q, p, num_speeds):
+        """B (m, k) = (∂ω/∂u)ᵀ D at (t, q) for the `Controlled` system `controlled`, whose
+        dynamics has `num_speeds` speeds m (called by `Controlled`, not by users)."""
         rates = _speed_map(controlled.dynamics, t, q, p, num_speeds)
         orientation = getattr(self.body, "orientation", self.body)
         rotation = jnp.asarray(orientation(q, p))

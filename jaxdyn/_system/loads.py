@@ -33,6 +33,9 @@ class PointForce(eqx.Module):
     force: Callable
 
     def generalized_force(self, time_dependent, t, q, t_dot, qd, p):
+        """Q (n,), Q_j = F·∂ṙ/∂q̇_j, at (t, q, q̇) (one vector–Jacobian product);
+        `time_dependent` and `t_dot` as the `MultibodySystem` that holds the load passes them
+        (called by it, not by users)."""
         def position(t, q):
             r = jnp.asarray(call(self.point, "PointForce point", time_dependent,
                                  CONFIGURATION_ARGS, t, q, p))
@@ -57,6 +60,9 @@ class BodyTorque(eqx.Module):
     torque: Callable
 
     def generalized_force(self, time_dependent, t, q, t_dot, qd, p):
+        """Q (n,), Q_j = τ·∂ω/∂q̇_j, at (t, q, q̇) (one vector–Jacobian product);
+        `time_dependent` and `t_dot` as the `MultibodySystem` that holds the load passes them
+        (called by it, not by users)."""
         def angular_velocity(qd):
             return self.body.world_angular_velocity(time_dependent, t, q, t_dot, qd, p)
 

@@ -170,8 +170,11 @@ def example_robot_urdf(name: str) -> str:
     example-robot-data`, which installs its files under site-packages), for `from_urdf`.
 
     `name` is a URDF file's name without ".urdf" ("panda", "ur5_robot", "talos_full_v2",
-    "g1_29dof_rev_1_0"), a unique prefix of one ("ur5" finds ur5_robot.urdf first, "solo12"),
-    or the end of its path ("anymal_c_simple_description/urdf/anymal.urdf") where names repeat.
+    "g1_29dof_rev_1_0"), its robot's name where that robot has one file ("anymal_c" for
+    anymal_c_simple_description/urdf/anymal.urdf, "go2"), a unique prefix of a file's name
+    ("ur5" finds ur5_robot.urdf first, "solo12"), or the end of its path
+    ("anymal_c_simple_description/urdf/anymal.urdf") where names repeat. An unknown or
+    ambiguous name is an error that lists names which each find one file.
     """
     import importlib.metadata
 
@@ -181,20 +184,53 @@ def example_robot_urdf(name: str) -> str:
     except importlib.metadata.PackageNotFoundError:
         raise ValueError("example-robot-data is not installed: pip install example-robot-data "
                          "(or jaxdyn[test]).") from None
-    stem = lambda f: str(f).rsplit("/", 1)[-1][:-len(".urdf")]  # noqa: E731
+    found = _find_example_robot(name, files)
+    if isinstance(found, list):
+        listed = ", ".join(_shortest_names(found, files))
+        if found:
+            raise ValueError(f"{name!r} names several example robots: {listed}. Pass one of "
+                             "these names.")
+        raise ValueError(f"No example robot is named {name!r}; the collection has: "
+                         f"{', '.join(_shortest_names(files, files))}.")
+    return str(found.locate())
+
+
+def _stem(f):
+    return str(f).rsplit("/", 1)[-1][:-len(".urdf")]
+
+
+def _robot(f):
+    """The robot a file of example-robot-data describes: its folder's name up to
+    "_description" or "_data" (anymal_c_simple_description → "anymal_c_simple", and
+    "anymal_c" by prefix)."""
+    folder = str(f).split("example-robot-data/robots/")[-1].split("/", 1)[0]
+    return folder.rsplit("_description", 1)[0].rsplit("_data", 1)[0]
+
+
+def _find_example_robot(name, files):
+    """The one file that `name` finds, or the list of candidates (empty: none)."""
     for candidates in ([f for f in files if str(f).endswith("/" + name)],
-                       [f for f in files if stem(f) == name],
-                       [f for f in files if stem(f) == name + "_robot"],
-                       [f for f in files if stem(f).startswith(name)]):
-        if len(candidates) == 1:
-            return str(candidates[0].locate())
-        if len(candidates) > 1:
-            listed = ", ".join(sorted(str(f).split("example-robot-data/robots/")[-1]
-                                      for f in candidates))
-            raise ValueError(f"{name!r} names several example robots: {listed}. Pass more of "
-                             "the file's name or the end of its path.")
-    known = ", ".join(sorted({stem(f) for f in files}))
-    raise ValueError(f"No example robot is named {name!r}; the collection has: {known}.")
+                       [f for f in files if _stem(f) == name],
+                       [f for f in files if _stem(f) == name + "_robot"]):
+        if candidates:
+            return candidates[0] if len(candidates) == 1 else candidates
+    by_robot = [f for f in files if _robot(f) == name or _robot(f).startswith(name + "_")]
+    if len(by_robot) == 1:
+        return by_robot[0]
+    candidates = [f for f in files if _stem(f).startswith(name)]
+    if len(candidates) == 1:
+        return candidates[0]
+    return candidates or by_robot
+
+
+def _shortest_names(chosen, files):
+    """For each file of `chosen`, the shortest name that finds it alone: its name without
+    ".urdf" where that is unique, else the end of its path."""
+    names = []
+    for f in chosen:
+        relative = str(f).split("example-robot-data/robots/")[-1]
+        names.append(_stem(f) if _find_example_robot(_stem(f), files) is f else relative)
+    return sorted(names)
 
 
 def urdf_contact_points(path, links=None) -> list:
