@@ -76,6 +76,7 @@ from ._linearisation import (
     normal_modes as normal_modes,
 )
 from ._batch import simulate_batch as simulate_batch
+from ._state import allow_float32 as allow_float32
 from ._stiffness import Stiffness as Stiffness, stiffness as stiffness
 from ._variational import (
     AbstractStructurePreserving as AbstractStructurePreserving,

@@ -152,12 +152,36 @@ def _device_scalar(value, sign, dtype):
 
 
 FLOAT32_BY_DEFAULT = (
-    "jaxdyn is computing in float32 because JAX's 64-bit mode is off (float64 inputs are cast "
-    "to float32): mass matrices, long integrations and fits lose most of their accuracy. Turn "
-    "it on before any JAX computation: jax.config.update('jax_enable_x64', True). To compute "
-    "in float32 on purpose, pass float32 arrays (this warning is then not given).")
+    "jaxdyn is computing in float32 because JAX's 64-bit mode is off: mass matrices, long "
+    "integrations and fits lose most of their accuracy (float64 inputs are cast to float32, "
+    "and jnp.array(1.0) is float32). Turn it on before any JAX computation: "
+    "jax.config.update('jax_enable_x64', True). To compute in float32 on purpose, call "
+    "jaxdyn.allow_float32() (this warning is then not given).")
 _warned_float32 = []
-_LOW_PRECISION = (np.dtype(np.float32), np.dtype(np.float16), np.dtype(jnp.bfloat16))
+# A precision no default gives: a state in float16 or bfloat16 was chosen. A float32 array
+# was not, necessarily: with 64-bit mode off every array JAX makes is float32.
+_CHOSEN_PRECISION = (np.dtype(np.float16), np.dtype(jnp.bfloat16))
+_FLOAT32_ALLOWED = [False]
+
+
+def allow_float32(allowed: bool = True) -> None:
+    """Declare that computing in float32 is intended, for this process.
+
+    jaxdyn computes in the precision of the state, and JAX makes float32 arrays (and casts
+    float64 inputs to float32) unless its 64-bit mode is on. Mechanics loses most of its
+    accuracy there (a mass matrix's condition number times ε₃₂ ≈ 1.2e-7; the default
+    tolerance becomes 1e-6), so the first computation with 64-bit mode off warns once,
+    naming the switch, unless this was called. For float64, call
+    `jax.config.update("jax_enable_x64", True)` before any JAX computation instead.
+
+    **Arguments:**
+
+    - `allowed`: True (float32 on purpose: no warning) or False (warn again, once, at the
+      next computation in float32).
+    """
+    _FLOAT32_ALLOWED[0] = bool(allowed)
+    if not allowed:
+        _warned_float32.clear()
 
 
 # JAX's flags are attributes that `Config` adds at run time, unknown to a type checker.
@@ -175,10 +199,10 @@ def _caller_outside_jaxdyn() -> int:
 
 def state_dtype(*candidates):
     """The floating dtype of the first array among `candidates` (the state), else the
-    default float. Warns once per process when JAX's 64-bit mode is off and the state was not
-    given in float32 on purpose (float32 arrays)."""
-    if not _CONFIG.jax_enable_x64 and not _warned_float32 and not any(
-            getattr(x, "dtype", None) in _LOW_PRECISION for x in candidates):
+    default float. Warns once per process when JAX's 64-bit mode is off, unless float32 was
+    declared intended (`allow_float32`) or the state is in float16 or bfloat16."""
+    if (not _CONFIG.jax_enable_x64 and not _warned_float32 and not _FLOAT32_ALLOWED[0]
+            and not any(getattr(x, "dtype", None) in _CHOSEN_PRECISION for x in candidates)):
         _warned_float32.append(True)
         warnings.warn(FLOAT32_BY_DEFAULT, UserWarning, stacklevel=_caller_outside_jaxdyn())
     for x in candidates:

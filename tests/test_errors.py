@@ -552,28 +552,35 @@ def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
 
 
 def test_float32_by_default_warns_once_naming_the_switch_unless_chosen():
-    """With JAX's 64-bit mode off, float64 inputs silently become float32: jaxdyn warns once,
-    at the user's line, naming the switch; float32 inputs (a choice) give no warning."""
+    """With JAX's 64-bit mode off, every array is float32 (`jnp.array(1.0)` too) and float64
+    inputs are cast: jaxdyn warns once, at the user's line, naming both switches, whether the
+    state came as float64 or as the float32 arrays JAX makes by default; after
+    `jaxdyn.allow_float32()` (the choice made explicit) no warning."""
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
-    system = ("import numpy as np, jaxdyn; s = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd,"
-              " lambda q, p: 0.5 * q @ q); ")
+    system = ("import numpy as np, jax.numpy as jnp, jaxdyn; "
+              "s = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.5 * q @ q); ")
     scripts = {
         "float64 given": system + ("x = jaxdyn.simulate(s, np.ones(1), np.zeros(1), t1=1.0); "
                                    "y = s.accelerations(0.0, np.ones(1), np.zeros(1)); "
                                    "print(x.q.dtype, y.dtype)"),
-        "float32 chosen": system + ("x = jaxdyn.simulate(s, np.ones(1, np.float32), "
-                                    "np.zeros(1, np.float32), t1=1.0); print(x.q.dtype)"),
+        "jnp default": system + ("x = jaxdyn.simulate(s, jnp.array([1.0]), jnp.array([0.0]), "
+                                 "t1=1.0); print(x.q.dtype)"),
+        "float32 chosen": system + ("jaxdyn.allow_float32(); x = jaxdyn.simulate(s, "
+                                    "jnp.array([1.0]), jnp.array([0.0]), t1=1.0); "
+                                    "print(x.q.dtype)"),
     }
     running = {name: subprocess.Popen([sys.executable, "-W", "always", "-c", code], env=env,
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                for name, code in scripts.items()}
     done = {name: (process.wait(), *process.communicate()) for name, process in running.items()}
-    code, out, err = done["float64 given"]
-    assert code == 0, err
-    assert out.split() == ["float32", "float32"]
-    assert err.count("jaxdyn is computing in float32") == 1
-    assert "jax.config.update('jax_enable_x64', True)" in err
-    assert err.startswith("<string>:1: UserWarning")  # the user's line, not jaxdyn's
+    for name in ("float64 given", "jnp default"):
+        code, out, err = done[name]
+        assert code == 0, err
+        assert set(out.split()) == {"float32"}
+        assert err.count("jaxdyn is computing in float32") == 1, name
+        assert "jax.config.update('jax_enable_x64', True)" in err
+        assert "jaxdyn.allow_float32()" in err
+        assert err.startswith("<string>:1: UserWarning")  # the user's line, not jaxdyn's
     code, out, err = done["float32 chosen"]
     assert code == 0 and out.split() == ["float32"], err
     assert "jaxdyn is computing in float32" not in err
