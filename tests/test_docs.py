@@ -134,52 +134,6 @@ def test_the_site_renders_notebooks_examples_and_benchmarks(site):
     assert (site / "benchmarks" / "work_precision.png").exists()
 
 
-# What the guides' fragments take from their surroundings (a system defined earlier on the
-# page, data a user has): keyed by a line of the fragment, run before it.
-_CONTEXT = {
-    "plant = jaxdyn.Controlled(jaxdyn.Lagrangian(T, V), input_map=[0])": """
-import scipy.linalg
-def T(q, qd, p):
-    return (0.5 * (p["M"] + p["m"]) * qd[0] ** 2 + p["m"] * p["l"] * qd[0] * qd[1]
-            * jnp.cos(q[1]) + 0.5 * p["m"] * p["l"] ** 2 * qd[1] ** 2)
-def V(q, p):
-    return p["m"] * p["g"] * p["l"] * jnp.cos(q[1])
-def lqr(A, B):
-    A, B = np.asarray(A), np.asarray(B)
-    riccati = scipy.linalg.solve_continuous_are(A, B, np.eye(4), np.eye(1))
-    return jnp.asarray(B.T @ riccati)
-p = dict(M=1.0, m=0.1, l=0.5, g=9.81)
-q0, u0, ts = jnp.array([0.0, 0.3]), jnp.zeros(2), jnp.linspace(0.0, 6.0, 61)
-""",
-    "result = jaxdyn.fit(pendulum, experiments,": """
-import fit_systems
-pendulum, sigma = fit_systems.PENDULUM, 0.01
-recordings = []
-for q0 in ((0.5, -0.3), (-0.8, 0.4)):
-    ts = np.linspace(0.0, 4.0, 41)
-    angles = fit_systems.pendulum_data(q0, ts, 2.0, 1.5)[:, :2]
-    noisy = angles + sigma * np.random.default_rng(0).standard_normal(angles.shape)
-    recordings.append((ts, noisy, q0, (0.0, 0.0)))
-""",
-    "solver=jaxdyn.VariationalIntegrator()": """
-pendulum, p, q0, qd0 = quickstart  # the pendulum of the README's first block
-""",
-    "q0s = np.stack([angles, angles / 2], axis=1)": """
-def T(q, qd, p):
-    v1 = p["l1"] * qd[0] * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])])
-    v2 = v1 + p["l2"] * qd[1] * jnp.stack([jnp.cos(q[1]), jnp.sin(q[1])])
-    return 0.5 * p["m1"] * v1 @ v1 + 0.5 * p["m2"] * v2 @ v2
-def V(q, p):
-    y1 = -p["l1"] * jnp.cos(q[0])
-    return p["g"] * (p["m1"] * y1 + p["m2"] * (y1 - p["l2"] * jnp.cos(q[1])))
-pendulum = jaxdyn.Lagrangian(T, V)
-p = {"m1": 1.0, "m2": 1.0, "l1": 1.0, "l2": 1.0, "g": 9.81}
-angles, ts = np.linspace(0.5, 2.5, 8), np.linspace(0.0, 10.0, 11)
-q0, u0 = np.array([1.0, 0.5]), np.zeros(2)
-""",
-}
-
-
 # The pages whose code runs, in the order a reader meets them (the site's navigation): the
 # README's quickstart first, whose pendulum later pages reuse.
 _PAGES = ["README.md", "docs/getting-started.md"] + [f"docs/guides/{name}.md" for name in (
@@ -194,41 +148,42 @@ def test_the_pages_cover_every_guide():
 
 @pytest.fixture(scope="module")
 def guides():
-    """Every Python block of the README and the guides, run in order in one namespace (as a
-    reader pastes them), fragments after the context they assume; the namespace as each block
-    left it, by (page, first line of the block). The block that joins several processes by
-    `jax.distributed` is run for real by
-    tests/test_batch.py::test_two_processes_with_jax_distributed_equal_one."""
+    """Every Python block of the README and the guides, each page run top to bottom in a
+    namespace of its own that starts empty (as a reader pastes the page into a fresh
+    interpreter: nothing is supplied from outside the page; the process is shared only so
+    that the compiled programs are); the namespace as each block left it, by (page, first line
+    of the block). The block that joins several processes by `jax.distributed` is run for
+    real by tests/test_batch.py::test_two_processes_with_jax_distributed_equal_one."""
     blocks = [(page, block) for page in _PAGES
               for block in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)]
     assert len(blocks) >= 12
-    namespace = {}
+    namespaces: dict = {}
     after, ran = {}, []
     with pytest.MonkeyPatch.context() as monkeypatch:
         monkeypatch.chdir(ROOT)
-        monkeypatch.syspath_prepend(str(ROOT / "tests"))
-        exec("import jax, jax.numpy as jnp, numpy as np, jaxdyn", namespace)
         for page, block in blocks:
             if "jax.distributed.initialize" in block:
                 continue
-            for key, context in _CONTEXT.items():
-                if key in block:
-                    exec(context, namespace)
+            namespace = namespaces.setdefault(page, {"__name__": "__main__"})
             try:
                 exec(compile(block, page, "exec"), namespace)
             except Exception as error:
                 raise AssertionError(f"a block of {page} failed:\n{block}") from error
-            if not ran:
-                namespace["quickstart"] = tuple(namespace[k]
-                                                for k in ("pendulum", "p", "q0", "qd0"))
             ran.append(page)
             after[page, block.splitlines()[0]] = dict(namespace)
     return blocks, ran, after
 
 
 def test_the_guides_code_runs(guides):
+    """Every block ran, each page from an empty namespace; and each page's first block turns
+    on 64-bit mode, as a fresh interpreter needs (the test process has it on already)."""
     blocks, ran, _ = guides
     assert len(ran) == len(blocks) - 1
+    first = {}
+    for page, block in blocks:
+        first.setdefault(page, block)
+    for page, block in first.items():
+        assert 'jax.config.update("jax_enable_x64", True)' in block, page
 
 
 def test_the_contact_guides_anymal_settles_on_its_feet(guides):
