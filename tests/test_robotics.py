@@ -35,9 +35,8 @@ def _angular_first(x):
 
 
 def _no_root_mass(robot):
-    """Pinocchio leaves the link fixed to the world out of the centre of mass, the centroidal
-    momentum and the potential energy (it does not move); jaxdyn counts every link. Compared
-    with the root's mass set to zero."""
+    """Pinocchio leaves the link fixed to the world out of the potential energy (it does not
+    move); jaxdyn counts every link. Compared with the root's mass set to zero."""
     if robot.floating:
         return robot.p
     root = robot.tree.links[0].name
@@ -85,18 +84,19 @@ def _pinocchio_references(robot, frames, num_states=3, seed=0):
 
 def _ours(robot, frames, q, u, ud):
     """Everything jaxdyn computes, for stacked states: one compiled program."""
-    tree, p, p_moving = robot.tree, robot.p, _no_root_mass(robot)
+    tree, p = robot.tree, robot.p
     dynamics = jaxdyn.ArticulatedBody(tree)
 
     @jax.jit
     @jax.vmap
     def at(q, u, ud):
         out = {"tau": dynamics.residual(0.0, q, u, ud, p),
-               "com": jaxdyn.centre_of_mass(tree, q, p_moving),
-               "vcom": jaxdyn.centre_of_mass_velocity(tree, q, u, p_moving),
-               "Jcom": jaxdyn.centre_of_mass_jacobian(tree, q, p_moving),
-               "Ag": jaxdyn.centroidal_momentum_matrix(tree, q, p_moving),
-               "hg": jaxdyn.centroidal_momentum(tree, q, u, p_moving),
+               # Pinocchio's convention: the links welded to the world left out.
+               "com": jaxdyn.centre_of_mass(tree, q, p, include_fixed=False),
+               "vcom": jaxdyn.centre_of_mass_velocity(tree, q, u, p, include_fixed=False),
+               "Jcom": jaxdyn.centre_of_mass_jacobian(tree, q, p, include_fixed=False),
+               "Ag": jaxdyn.centroidal_momentum_matrix(tree, q, p, include_fixed=False),
+               "hg": jaxdyn.centroidal_momentum(tree, q, u, p, include_fixed=False),
                "Y": jaxdyn.inverse_dynamics_regressor(tree, q, u, ud, p),
                "frames": {}}
         out["yT"], out["yV"] = jaxdyn.energy_regressors(tree, q, u, p)
@@ -295,6 +295,30 @@ def _planar_arm_by_hand(q, qd, qdd):
     jacobian = np.array([[1.0, 1.0], [-l1 * s1 - l2 * s12, -l2 * s12],
                          [l1 * c1 + l2 * c12, l2 * c12]])
     return tau, jacobian
+
+
+def test_centre_of_mass_counts_the_links_welded_to_the_world_unless_told_not_to():
+    """UR5 (example-robot-data) has three links welded to the world (world, base_link, base).
+    `include_fixed=False` is Pinocchio's `centerOfMass`; the default, the whole robot's, is
+    Pinocchio's centre of the moving links and its universe body's inertia (the welded links,
+    merged) averaged by mass."""
+    path = jaxdyn.example_robot_urdf("ur5")
+    tree, p = jaxdyn.from_urdf(path)
+    model = pin.buildModelFromUrdf(path)
+    data = model.createData()
+    q = np.random.default_rng(0).uniform(-1.0, 1.0, model.nq)
+    moving = pin.centerOfMass(model, data, q)
+    base = model.inertias[0]  # the universe's body: what is welded to the world
+    whole = ((data.mass[0] * moving + base.mass * base.lever) / (data.mass[0] + base.mass))
+    assert base.mass > 1.0
+    _close(jaxdyn.centre_of_mass(tree, q, p, include_fixed=False), moving)
+    _close(jaxdyn.centre_of_mass(tree, q, p), whole)
+    assert np.linalg.norm(whole - moving) > 0.03
+    # A floating base has nothing welded to the world: the option changes nothing.
+    floating, pf = jaxdyn.from_urdf(path, floating=True)
+    qf = np.concatenate([np.zeros(3), [1.0, 0, 0, 0], q])
+    np.testing.assert_array_equal(jaxdyn.centre_of_mass(floating, qf, pf),
+                                  jaxdyn.centre_of_mass(floating, qf, pf, include_fixed=False))
 
 
 def test_planar_arm_against_its_textbook_equations():

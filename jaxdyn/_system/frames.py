@@ -134,39 +134,60 @@ def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=No
     return rates
 
 
+def _counted(tree, p, dtype, include_fixed):
+    """The links' masses (N,) and inertias (N, 3, 3), zero for the links welded to the world
+    unless `include_fixed`."""
+    masses, inertias = tree.inertias(p, dtype)
+    if include_fixed:
+        return masses, inertias
+    welded = tree.welded_bodies()
+    moving = np.array([welded[link.name][0] is not None for link in tree.links])
+    if not moving.any():
+        raise ValueError("include_fixed=False leaves no link: every link of this tree is "
+                         "welded to the world.")
+    return jnp.where(moving, masses, 0.0), jnp.where(moving[:, None, None], inertias, 0.0)
+
+
 @public_function()
-def centre_of_mass(tree: RigidBodyTree, q, p=None):
-    """c = Σ m_i r_Gi / Σ m_i (3,), in the world. Every link counts, the root of a fixed base
-    too (Pinocchio leaves out the link fixed to the world)."""
+def centre_of_mass(tree: RigidBodyTree, q, p=None, *, include_fixed=True):
+    """c = Σ m_i r_Gi / Σ m_i (3,), in the world.
+
+    `include_fixed`: count the links welded to the world (a fixed base and what is bolted to
+    it), which do not move. True (the default) gives the whole robot's centre of mass; False
+    leaves them out, Pinocchio's convention (`pinocchio.centerOfMass`, `data.vcom`,
+    `jacobianCenterOfMass`, `ccrba`). On a floating base no link is welded to the world and
+    both agree. The same option in `centre_of_mass_velocity`, `centre_of_mass_jacobian`,
+    `centroidal_momentum` and `centroidal_momentum_matrix`.
+    """
     q, _, _ = _checked(tree, q)
-    masses, _, _ = tree.link_inertias(p, q.dtype)
+    masses, _ = _counted(tree, p, q.dtype, include_fixed)
     centres, _ = tree.body_poses(jnp.zeros((), q.dtype), q, p)
     return masses @ centres / jnp.sum(masses)
 
 
-def _centre_of_mass_velocity(tree, q, u, p):
-    masses, _ = tree.inertias(p, q.dtype)
+def _centre_of_mass_velocity(tree, q, u, p, include_fixed):
+    masses, _ = _counted(tree, p, q.dtype, include_fixed)
     velocities, _ = tree.body_velocities(jnp.zeros((), q.dtype), q, u, p)
     return masses @ velocities / jnp.sum(masses)
 
 
 @public_function()
-def centre_of_mass_velocity(tree: RigidBodyTree, q, u, p=None):
-    """ċ = Σ m_i v_Gi / Σ m_i (3,), world axes."""
+def centre_of_mass_velocity(tree: RigidBodyTree, q, u, p=None, *, include_fixed=True):
+    """ċ = Σ m_i v_Gi / Σ m_i (3,), world axes. `include_fixed` as in `centre_of_mass`."""
     q, u, _ = _checked(tree, q, u)
-    return _centre_of_mass_velocity(tree, q, u, p)
+    return _centre_of_mass_velocity(tree, q, u, p, include_fixed)
 
 
 @public_function()
-def centre_of_mass_jacobian(tree: RigidBodyTree, q, p=None):
-    """J_c (3, m) with ċ = J_c(q) u (world axes)."""
+def centre_of_mass_jacobian(tree: RigidBodyTree, q, p=None, *, include_fixed=True):
+    """J_c (3, m) with ċ = J_c(q) u (world axes). `include_fixed` as in `centre_of_mass`."""
     q, _, _ = _checked(tree, q)
     zero = jnp.zeros(tree.num_speeds, q.dtype)
-    return jax.jacfwd(lambda u: _centre_of_mass_velocity(tree, q, u, p))(zero)
+    return jax.jacfwd(lambda u: _centre_of_mass_velocity(tree, q, u, p, include_fixed))(zero)
 
 
-def _centroidal_momentum(tree, q, u, p):
-    masses, inertias = tree.inertias(p, q.dtype)
+def _centroidal_momentum(tree, q, u, p, include_fixed):
+    masses, inertias = _counted(tree, p, q.dtype, include_fixed)
     t = jnp.zeros((), q.dtype)
     velocities, omega = tree.body_velocities(t, q, u, p)
     centres, rotations = tree.body_poses(t, q, p)
@@ -178,17 +199,19 @@ def _centroidal_momentum(tree, q, u, p):
 
 
 @public_function()
-def centroidal_momentum(tree: RigidBodyTree, q, u, p=None):
+def centroidal_momentum(tree: RigidBodyTree, q, u, p=None, *, include_fixed=True):
     """h_G = (k_G, l) (6,): the angular momentum about the centre of mass,
-    Σ (r_Gi − c) × m_i v_Gi + R_i I_i ω_i, and the linear momentum Σ m_i v_Gi, in world axes."""
+    Σ (r_Gi − c) × m_i v_Gi + R_i I_i ω_i, and the linear momentum Σ m_i v_Gi, in world axes.
+    `include_fixed` as in `centre_of_mass` (links welded to the world carry no momentum, but
+    they move the centre c)."""
     q, u, _ = _checked(tree, q, u)
-    return _centroidal_momentum(tree, q, u, p)
+    return _centroidal_momentum(tree, q, u, p, include_fixed)
 
 
 @public_function()
-def centroidal_momentum_matrix(tree: RigidBodyTree, q, p=None):
+def centroidal_momentum_matrix(tree: RigidBodyTree, q, p=None, *, include_fixed=True):
     """A_G (6, m) with h_G = A_G(q) u: rows the angular momentum about the centre of mass, then
-    the linear momentum, world axes."""
+    the linear momentum, world axes. `include_fixed` as in `centre_of_mass`."""
     q, _, _ = _checked(tree, q)
     zero = jnp.zeros(tree.num_speeds, q.dtype)
-    return jax.jacfwd(lambda u: _centroidal_momentum(tree, q, u, p))(zero)
+    return jax.jacfwd(lambda u: _centroidal_momentum(tree, q, u, p, include_fixed))(zero)
