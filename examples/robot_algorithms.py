@@ -72,6 +72,14 @@ print(f"2. regressor: {10 * len(result.links)} inertial parameters of {len(resul
       f"links, {result.rank} identifiable combinations (what the joint axes cannot see is not); "
       f"condition number of the identifiable part {singular[0] / singular[result.rank - 1]:.1e}")
 
+# Gautier and Khalil's base parameters: the combinations of π the torques determine.
+base = result.base_parameters
+relative = base.standard_errors / np.maximum(np.abs(base.values), 1e-12)
+print(f"   {np.sum(relative < 0.1)} of {len(base.names)} base parameters determined to 10 %, "
+      "e.g.:")
+for i in np.argsort(-np.abs(base.values))[:2]:
+    print(f"   {base.names[i]} = {base.values[i]:.4g} ± {base.standard_errors[i]:.2g}")
+
 # A validation motion not used in the fit: torques predicted from each estimate.
 ts_check = jnp.linspace(0.0, 10.0, 201) + 0.37
 q_c, u_c, ud_c, tau_c, Y_c = torques_and_regressor(ts_check * 0.8)

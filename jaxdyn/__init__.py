@@ -37,7 +37,9 @@ from ._fit.fit import (
     fit as fit,
     fit_batch as fit_batch,
 )
+from ._fit.base_parameters import BaseParameters as BaseParameters
 from ._fit.torques import (
+    ImplausibleEstimateWarning as ImplausibleEstimateWarning,
     InertialFit as InertialFit,
     fit_inertial_parameters as fit_inertial_parameters,
 )

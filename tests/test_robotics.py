@@ -7,6 +7,8 @@ floating-base robot written here as URDF (the quadruped Solo-12 in the slow set)
 for a planar two-link arm and a pendulum; finite differences for the gradients.
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -321,6 +323,45 @@ def test_centre_of_mass_counts_the_links_welded_to_the_world_unless_told_not_to(
                                   jaxdyn.centre_of_mass(floating, qf, pf, include_fixed=False))
 
 
+def test_identification_of_ur5_per_joint_keeps_every_link_plausible():
+    """UR5 (example-robot-data) from 2 % noisy torques at 200 random states, the prior 30 %
+    heavy: one body per joint (60 parameters, rank 36 as in Pinocchio's regressor), the
+    residual at the noise's level, and every mass within 10× of the truth (the wrist's last
+    link, whose mass alone the torques do not see, stays near its prior rather than falling
+    to zero); then the same robot carrying 20× its wrist's mass: the estimate warns, naming
+    the link."""
+    tree, truth = jaxdyn.from_urdf(jaxdyn.example_robot_urdf("ur5"), damping=False)
+    rng = np.random.default_rng(0)
+    q, u = rng.uniform(-2.0, 2.0, (200, 6)), rng.normal(size=(200, 6))
+    ud = 3.0 * rng.normal(size=(200, 6))
+    arm = jaxdyn.ArticulatedBody(tree)
+    torques = jax.vmap(arm.residual, (None, 0, 0, 0, None))
+    prior = jax.tree_util.tree_map(lambda x: 1.3 * x, truth)
+    for scale, warns in ((1.0, False), (20.0, True)):
+        payload = {**truth, "wrist_3_link": {**truth["wrist_3_link"],
+                                             "mass": scale * truth["wrist_3_link"]["mass"]}}
+        tau = np.asarray(torques(0.0, q, u, ud, payload))
+        sigma = 0.02 * np.std(tau, axis=0)
+        measured = tau + sigma * rng.normal(size=tau.shape)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = jaxdyn.fit_inertial_parameters(tree, q, u, ud, measured, prior,
+                                                    weights=sigma**-2)
+        names = [w for w in caught if issubclass(w.category, jaxdyn.ImplausibleEstimateWarning)]
+        assert result.links == ("shoulder_link", "upper_arm_link", "forearm_link",
+                                "wrist_1_link", "wrist_2_link", "wrist_3_link")
+        assert result.rank == 36 and result.converged
+        assert result.residual_rms < 1.1
+        if not warns:
+            assert not names and not result.implausible
+            for link in result.links:
+                ratio = float(result.params[link]["mass"]) / float(truth[link]["mass"])
+                assert 0.1 < ratio < 10, link
+        else:
+            assert list(result.implausible) == ["wrist_3_link"]
+            assert len(names) == 1 and "wrist_3_link: mass" in str(names[0].message)
+
+
 def test_planar_arm_against_its_textbook_equations():
     tree = _planar_arm()
     rng = np.random.default_rng(1)
@@ -456,8 +497,9 @@ def test_inertial_parameters_from_torques(tmp_path):
     """Torques of the textbook two-link arm (Spong et al.), the prior 30 % off: the planar arm
     has six identifiable combinations (Khalil and Dombre: ZZ₁ + m₂l₁², MX₁ + m₂l₁, MY₁, ZZ₂,
     MX₂, MY₂); the consistent estimate is a rigid body for every link and predicts torques at
-    new states as the textbook does; with noise, its weighted residual is the noise's (χ²)."""
-    tree, _ = _planar_arm_urdf(tmp_path / "arm.urdf")
+    new states as the textbook does; the base parameters span the same combinations as the
+    textbook's and take their values; with noise, the weighted residual is the noise's (χ²)."""
+    tree, truth = _planar_arm_urdf(tmp_path / "arm.urdf")
     _, prior = _planar_arm_urdf(tmp_path / "prior.urdf", scale_inertia=1.3, com_shift=0.8)
     rng = np.random.default_rng(3)
     states = rng.normal(size=(2, 3, 60, 2))
@@ -466,7 +508,8 @@ def test_inertial_parameters_from_torques(tmp_path):
     tau_new = np.stack([_planar_arm_by_hand(*x)[0] for x in zip(q_new, u_new, ud_new)])
 
     result = jaxdyn.fit_inertial_parameters(tree, q, u, ud, tau, prior)
-    assert result.links == ("rod0", "rod1", "tip")  # the fixed base is invisible to torques
+    # The fixed base is invisible to torques; the massless tip, welded to rod1, keeps its prior.
+    assert result.links == ("rod0", "rod1")
     assert result.rank == 6
     assert result.converged
     predicted = jax.vmap(jaxdyn.ArticulatedBody(tree).residual, (None, 0, 0, 0, None))(
@@ -476,16 +519,32 @@ def test_inertial_parameters_from_torques(tmp_path):
         mass, inertia = result.params[name]["mass"], np.asarray(result.params[name]["inertia"])
         moments = np.linalg.eigvalsh(inertia)
         assert mass > 0 and moments[0] > 0 and moments[2] <= moments[0] + moments[1], name
-    # The six combinations themselves, the tip (at x = l₂ on rod1) lumped into the second link.
-    (_, *_), rod0, rod1, tip = np.asarray(result.inertial_parameters)
-    m2 = rod1[0] + tip[0]
+    # The six combinations themselves (π of rod0 and rod1: m, mx, my, mz, Ixx, …, Izz).
+    _, rod0, rod1, _ = np.asarray(result.inertial_parameters)
+    m2 = rod1[0]
     l1, l2 = ARM["l1"], ARM["l2"]
-    identified = [rod0[9] + m2 * l1**2, rod0[1] + m2 * l1, rod0[2],
-                  rod1[9] + tip[9] + 2 * l2 * tip[1] + tip[0] * l2**2,
-                  rod1[1] + tip[1] + tip[0] * l2, rod1[2] + tip[2]]
+    identified = [rod0[9] + m2 * l1**2, rod0[1] + m2 * l1, rod0[2], rod1[9], rod1[1], rod1[2]]
     textbook = [ARM["m1"] * l1**2 / 3 + ARM["m2"] * l1**2, ARM["m1"] * l1 / 2 + ARM["m2"] * l1,
                 0.0, ARM["m2"] * l2**2 / 3, ARM["m2"] * l2 / 2, 0.0]
-    assert_close(identified, textbook, rtol=1e-6, atol=1e-7)  # the prior's pull: ~1e-7
+    assert_close(identified, textbook, rtol=1e-6, atol=1e-7)  # the prior's pull: ~1e-8
+    # Gautier and Khalil's base parameters: six, spanning the textbook's combinations (rows
+    # over the 20 parameters of rod0 and rod1), each valued as the textbook's π gives it.
+    base = result.base_parameters
+    textbook_rows = np.zeros((6, 20))
+    for row, entries in enumerate(([(9, 1), (10, l1**2)], [(1, 1), (10, l1)], [(2, 1)],
+                                   [(19, 1)], [(11, 1)], [(12, 1)])):
+        for column, value in entries:
+            textbook_rows[row, column] = value
+    assert base.combinations.shape == (6, 20) and len(base.names) == 6
+    assert np.linalg.matrix_rank(np.vstack([base.combinations, textbook_rows]), tol=1e-8) == 6
+    true_pi = np.asarray(jaxdyn.inertial_parameters(tree, truth))[1:3].ravel()  # rod0, rod1
+    assert_close(base.values, base.combinations @ true_pi, rtol=1e-9, atol=1e-9)
+    assert np.all(base.standard_errors < 1e-9)  # noise-free torques
+    # One name per base parameter, its own parameter first; mz, Ixx, … are invisible.
+    assert any(name.startswith("rod0.Izz") or "rod0.Izz" in name for name in base.names)
+    assert not base.identifiable[:, [3, 4, 5, 6, 7, 8]].any()
+    assert base.identifiable[1, 9]  # ZZ₂ alone is identifiable
+    assert "base parameters" in result.summary()
 
     sigma = 0.01 * np.std(tau, axis=0)
     noisy = tau + sigma * rng.normal(size=tau.shape)

@@ -3,18 +3,21 @@
 Inverse dynamics is linear in the links' inertial parameters, τ = Y(q, u, u̇) π (Atkeson, An
 and Hollerbach, 1986), so identification from torque data is linear least squares over the
 stacked regressor. Its unconstrained solution is often not a rigid body (a negative mass, an
-inertia that breaks the triangle inequality) and fixes only the identifiable combinations of π.
-Physical consistency holds exactly when each link's pseudo-inertia
+inertia that breaks the triangle inequality) and fixes only the identifiable combinations of π
+(the base parameters, `jaxdyn._fit.base_parameters`). Physical consistency holds exactly when
+each link's pseudo-inertia
 
     J = [[Σ, h], [hᵀ, m]],   Σ = ½ tr(I_O) 1 − I_O,  h = m c
 
-is positive definite (Wensing, Kim and Slotine, 2017): a convex set in π, and the torque
-residual is a convex quadratic, so the consistent estimate is the unique optimum of a convex
-problem, found by the barrier method (−log det J keeps every iterate a rigid body) rather than
-by a local search over a parametrisation of the set. A small pull towards the prior (CAD
-values), acting only on the combinations of π that the torques do not see, settles those.
+is positive definite (Wensing, Kim and Slotine, 2017). The consistent estimate adds to the
+torque residual a small multiple of the log-det (Burg) divergence of each J from the prior's,
+D(J ‖ J₀) = tr(J₀⁻¹ J) − log det(J₀⁻¹ J) − 4 (Lee, Wensing and Park, 2020): convex, infinite
+on the boundary of the consistent set, so the optimum is a rigid body strictly inside it, and
+what the torques do not determine is settled by the body closest to the prior in this
+geometry, not pushed onto the edge of the set (a link's mass to zero).
 """
 
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -30,6 +33,12 @@ from .._form.newton_euler import (
 )
 from .._system.tree import RigidBodyTree
 from .._system.urdf import LinkParameter
+from .base_parameters import PARAMETER_NAMES, BaseParameters, base_parameters
+
+
+class ImplausibleEstimateWarning(UserWarning):
+    """A fitted inertial parameter that is physically implausible (a mass far from the prior,
+    a body at the edge of physical consistency) and what the data could not determine."""
 
 
 class InertialFit(eqx.Module):
@@ -49,7 +58,17 @@ class InertialFit(eqx.Module):
     - `residual_rms`, `least_squares_rms`: the root mean square of the weighted torque
       residual √w (τ − Y π) of each estimate (≈ 1 when the weights are 1/σ² and the model
       explains the data).
-    - `converged`, `num_steps`: the consistent fit's barrier method (Newton steps).
+    - `converged`, `num_steps`: whether Newton's method for the consistent estimate met its
+      tolerance, and its steps.
+    - `base_parameters`: the identifiable combinations of the fitted links' parameters
+      (Gautier and Khalil's base parameters, `BaseParameters`): their combinations, values
+      from least squares and standard errors, and which single parameters are identifiable.
+    - `implausible`: the fitted links whose consistent estimate is physically implausible (a
+      mass more than 10× from the prior's, or a body at the edge of consistency: its
+      pseudo-inertia nearly singular), each with the reason; `fit_inertial_parameters` warns
+      about them (`ImplausibleEstimateWarning`).
+
+    `summary()` prints the fit, the base parameters and the implausible links.
     """
 
     params: Any
@@ -62,6 +81,20 @@ class InertialFit(eqx.Module):
     least_squares_rms: float
     converged: bool
     num_steps: int
+    base_parameters: BaseParameters
+    implausible: dict
+
+    def summary(self) -> str:
+        """The fit in a few lines: residuals, rank, the base parameters, the doubts."""
+        lines = [f"{len(self.links)} links fitted ({', '.join(self.links)}): rank {self.rank} "
+                 f"of {10 * len(self.links)}",
+                 f"weighted residual RMS {self.residual_rms:.4g} (consistent), "
+                 f"{self.least_squares_rms:.4g} (least squares); Newton "
+                 f"{'converged' if self.converged else 'NOT converged'} in {self.num_steps} "
+                 "steps",
+                 self.base_parameters.summary()]
+        lines += [f"implausible: {link}: {why}" for link, why in self.implausible.items()]
+        return "\n".join(lines)
 
 
 def _pseudo_inertia(pi):
@@ -101,24 +134,27 @@ def _log_det(pi):
     return jnp.linalg.slogdet(_pseudo_inertia(pi))[1]
 
 
-def _barrier_objective(pi, mu, problem):
-    """½ ‖S Vᵀ π − c‖² + ½ w² ‖Vₙᵀ(π − π_prior)‖² − μ Σ log det J(πᵢ): convex in π, finite
-    exactly inside the consistent set."""
-    r_matrix, c, unseen, prior, pull, _ = problem
-    residual, prior_residual = r_matrix @ pi - c, pull * (unseen @ (pi - prior))
-    log_det = jax.vmap(_log_det)(pi.reshape(-1, 10))
-    return 0.5 * (residual @ residual + prior_residual @ prior_residual) - mu * jnp.sum(log_det)
+def _objective(pi, problem):
+    """½ ‖S Vᵀ π − c‖² + Σᵢ wᵢ [tr(J₀ᵢ⁻¹ J(πᵢ)) − log det J(πᵢ)]: the torque residual and the
+    log-det divergence from the prior (up to constants); convex in π, finite exactly inside
+    the consistent set."""
+    r_matrix, c, prior_inverse, weight, _ = problem
+    residual = r_matrix @ pi - c
+    pseudo = jax.vmap(_pseudo_inertia)(pi.reshape(-1, 10))
+    divergence = (jnp.sum(prior_inverse * pseudo, axis=(1, 2))  # tr(J₀⁻¹ J), J₀⁻¹ symmetric
+                  - jax.vmap(_log_det)(pi.reshape(-1, 10)))
+    return 0.5 * residual @ residual + weight @ divergence
 
 
 @jax.jit
-def _newton_step(pi, mu, problem):
-    """One damped Newton step on the barrier problem, halved until every link's pseudo-inertia
-    stays positive definite and the objective falls (Armijo); returns the Newton decrement.
-    The Hessian is the quadratic part's constant one plus the barrier's, block-diagonal by
-    link (10 × 10 blocks)."""
-    value, gradient = jax.value_and_grad(_barrier_objective)(pi, mu, problem)
+def _newton_step(pi, problem):
+    """One damped Newton step, halved until every link's pseudo-inertia stays positive
+    definite and the objective falls (Armijo); returns the Newton decrement and the value.
+    The Hessian is the residual's constant one plus the divergence's, block-diagonal by link
+    (10 × 10 blocks)."""
+    value, gradient = jax.value_and_grad(_objective)(pi, problem)
     blocks = jax.vmap(jax.hessian(_log_det))(pi.reshape(-1, 10))
-    hessian = problem[-1] - mu * jax.scipy.linalg.block_diag(*blocks)
+    hessian = problem[-1] - jax.scipy.linalg.block_diag(*(problem[3][:, None, None] * blocks))
     step = -jnp.linalg.solve(hessian, gradient)
     decrement = -gradient @ step
 
@@ -126,33 +162,24 @@ def _newton_step(pi, mu, problem):
         trial = pi + alpha * step
         feasible = jnp.all(jnp.linalg.eigvalsh(jax.vmap(_pseudo_inertia)(
             trial.reshape(-1, 10)))[:, 0] > 0)
-        sufficient = _barrier_objective(trial, mu, problem) <= value - 0.25 * alpha * decrement
+        sufficient = _objective(trial, problem) <= value - 0.25 * alpha * decrement
         return feasible & sufficient
 
     alpha = jax.lax.while_loop(lambda a: (a > 1e-12) & ~acceptable(a), lambda a: 0.5 * a,
                                jnp.ones((), pi.dtype))
-    return jnp.where(alpha > 1e-12, pi + alpha * step, pi), decrement
+    return jnp.where(alpha > 1e-12, pi + alpha * step, pi), decrement, value
 
 
-def _interior_point(problem, pi, tolerance, max_steps):
-    """The barrier method (Boyd and Vandenberghe, Convex Optimization, §11.3): Newton's method
-    on the barrier problem for μ falling tenfold per stage; the last stage's optimum is within
-    4 N μ (the barrier's parameter) of the constrained optimum. Stops when that bound is
-    below `tolerance` relative to the objective's scale."""
-    scale = _barrier_objective(pi, 0.0, problem) + 1e-300
-    links = pi.shape[0] // 10
-    mu, steps = float(scale) / (4 * links), 0
-    while True:
-        for _ in range(50):
-            pi, decrement = _newton_step(pi, jnp.asarray(mu, pi.dtype), problem)
-            steps += 1
-            if float(decrement) < 1e-3 * tolerance * float(scale) or steps >= max_steps:
-                break
-        if steps >= max_steps:
-            return pi, False, steps
-        if 4 * links * mu < tolerance * float(scale):
+def _newton(problem, pi, tolerance, max_steps):
+    """Damped Newton's method from the prior (Boyd and Vandenberghe, Convex Optimization,
+    §9.5): stops when half the squared Newton decrement, which bounds the distance to the
+    optimum near it, falls below `tolerance` relative to the objective's scale."""
+    scale = abs(float(_objective(pi, problem))) + 1e-300
+    for steps in range(1, max_steps + 1):
+        pi, decrement, _ = _newton_step(pi, problem)
+        if 0.5 * float(decrement) < tolerance * scale:
             return pi, True, steps
-        mu /= 10.0
+    return pi, False, max_steps
 
 
 def fit_inertial_parameters(
@@ -165,7 +192,7 @@ def fit_inertial_parameters(
     *,
     weights=None,
     links=None,
-    prior_weight: float = 1e-8,
+    prior_weight: float = 1e-10,
     tolerance: float = 1e-12,
     max_steps: int = 500,
     chunk: int = 256,
@@ -174,19 +201,21 @@ def fit_inertial_parameters(
 
     Minimises the weighted torque residual over the links' inertial parameters π,
 
-        ½ Σₖ ‖W^½ (τₖ − Y(qₖ, uₖ, u̇ₖ) π)‖² + ½ λ s² ‖Vₙᵀ(π − π_prior)‖²,
+        ½ Σₖ ‖W^½ (τₖ − Y(qₖ, uₖ, u̇ₖ) π)‖² + Σᵢ wᵢ D(J(πᵢ) ‖ J₀ᵢ),
 
-    once without constraints (the minimum-norm linear least squares, `least_squares`) and once
-    over physically consistent bodies only: each link's pseudo-inertia J(πᵢ) = [[½ tr(I_O) 1 −
-    I_O, m c], [m cᵀ, m]] positive definite (Wensing, Kim and Slotine, 2017), a convex problem
-    solved by the barrier method from the prior (Newton steps on the objective − μ Σ log det
-    J(πᵢ), μ falling tenfold per stage) on the reduced problem: with the SVD W^½ Y = U S Vᵀ of
-    the stacked regressor, ‖W^½(τ − Y π)‖² = ‖S Vᵀ π − Uᵀ W^½ τ‖² + const, so a step costs
-    (10 N)³ whatever the number of samples. Vₙ spans the combinations of π the regressor does
-    not see (its null space),
-    λ = `prior_weight` and s, the regressor's largest singular value: the pull settles what the
-    data do not determine and, where the prior's unseen part cannot be completed into rigid
-    bodies that fit the data, biases the fit by about λ relative.
+    once without the second term (the minimum-norm linear least squares, `least_squares`)
+    and once with it: D(J ‖ J₀) = tr(J₀⁻¹ J) − log det(J₀⁻¹ J) − 4 is the log-det divergence
+    of link i's pseudo-inertia J(πᵢ) = [[½ tr(I_O) 1 − I_O, m c], [m cᵀ, m]] from the prior's
+    J₀ᵢ (Lee, Wensing and Park, 2020). It is finite exactly for rigid bodies (J positive
+    definite; Wensing, Kim and Slotine, 2017) and convex, so the estimate is the unique
+    optimum of a convex problem, found by damped Newton steps from the prior, always a rigid
+    body, and what the torques do not determine is taken from the closest body to the prior
+    rather than from the edge of the consistent set. The weights wᵢ = λ s² ‖J₀ᵢ‖²_F (λ =
+    `prior_weight`, s the largest singular value of the weighted regressor) make the pull λ
+    relative to the best-determined combination: negligible where the torques see π, decisive
+    where they do not. Steps run on the reduced problem: with the SVD W^½ Y = U S Vᵀ of the
+    stacked regressor, ‖W^½(τ − Y π)‖² = ‖S Vᵀ π − Uᵀ W^½ τ‖² + const, so a step costs
+    (10 N)³ whatever the number of samples.
 
     **Arguments:**
 
@@ -199,11 +228,15 @@ def fit_inertial_parameters(
       fitted links' mass, com and inertia must be read from p, as `from_urdf` does by default
       (`parameters=True`).
     - `weights`: None (all 1), or the inverse noise variances 1/σ², broadcastable to (k, m).
-    - `links`: the names of the links to fit; by default every link the torques can see (a
-      nonzero column of the regressor: links welded to a fixed base are left out).
-    - `prior_weight`: λ above. `tolerance`: the barrier method stops when its bound on the
-      distance to the optimum falls below this, relative to the objective at the prior;
-      `max_steps`: at most that many Newton steps.
+    - `links`: the names of the links to fit; by default every link on a moving joint that
+      the torques can see (a nonzero column of the regressor), one per joint as in Pinocchio's
+      regressor: the links welded to them by fixed joints (sensors, tool frames, covers) keep
+      the prior's parameters, and the moving link takes up what the welded body as a whole
+      needs. Name welded links to fit them too (their split with the moving link is then
+      not identifiable: see `InertialFit.base_parameters`).
+    - `prior_weight`: λ above. `tolerance`: Newton's method stops when half its squared
+      decrement (≈ the distance to the optimum in objective) falls below this, relative to
+      the objective at the prior; `max_steps`: at most that many Newton steps.
     - `chunk`: states per batch of regressors (bounds memory on long records).
 
     **Returns:** an `InertialFit`.
@@ -234,7 +267,7 @@ def fit_inertial_parameters(
     regressor = regressor.reshape(k * m, len(names), 10)
     if links is None:
         seen = np.asarray(jnp.any(regressor != 0, axis=(0, 2)))
-        links = [name for name, s in zip(names, seen) if s]
+        links = [link.name for link, s in zip(tree.links, seen) if s and link.joint.nv]
     fitted = np.array([names.index(name) for name in links])
     for index in fitted:
         link = tree.links[index]
@@ -256,6 +289,7 @@ def fit_inertial_parameters(
     least_squares = directions[:rank].T @ (c[:rank] / singular[:rank])
     r_matrix = singular[:, None] * directions
     unseen = directions[rank:]  # the combinations of π the torques do not see
+    base = base_parameters(a, b, rank, links, unseen)
     # A prior whose pseudo-inertia is singular (a massless link) is nudged inside the cone.
     pseudo = jax.vmap(_pseudo_inertia)(prior[fitted])
     nudge = 1e-9 * jnp.max(jnp.trace(pseudo, axis1=1, axis2=2)) * jnp.eye(4, dtype=q.dtype)[None]
@@ -265,11 +299,11 @@ def fit_inertial_parameters(
                          "not a rigid body (its pseudo-inertia is not positive semi-definite): "
                          "give physically consistent prior masses, centres of mass and "
                          "inertias.")
-    start = jax.vmap(_from_pseudo_inertia)(pseudo + nudge).ravel()
-    pull = np.sqrt(prior_weight) * singular[0]
-    quadratic = r_matrix.T @ r_matrix + pull**2 * unseen.T @ unseen  # its constant Hessian
-    problem = (r_matrix, c, unseen, prior[fitted].ravel(), pull, quadratic)
-    consistent, converged, num_steps = _interior_point(problem, start, tolerance, max_steps)
+    start = pseudo + nudge
+    weight = prior_weight * singular[0] ** 2 * jnp.sum(start**2, axis=(1, 2))
+    problem = (r_matrix, c, jnp.linalg.inv(start), weight, r_matrix.T @ r_matrix)
+    consistent, converged, num_steps = _newton(
+        problem, jax.vmap(_from_pseudo_inertia)(start).ravel(), tolerance, max_steps)
     consistent = consistent.reshape(-1, 10)
 
     estimate = prior.at[fitted].set(consistent)
@@ -280,6 +314,12 @@ def fit_inertial_parameters(
             parameter = getattr(link, key)
             params[parameter.link] = {**params[parameter.link], parameter.key: value}
     rms = lambda x: float(jnp.sqrt(jnp.mean((a @ x - b) ** 2)))  # noqa: E731
+    implausible = _implausible(consistent, prior[fitted], links, base.identifiable)
+    if implausible:
+        warnings.warn("physically implausible estimates: " + "; ".join(
+            f"{link}: {why}" for link, why in implausible.items()) + ". Fix what the data "
+            "cannot determine (leave the link out with links=[...], or excite the joints that "
+            "move it) or give a closer prior.", ImplausibleEstimateWarning, stacklevel=2)
     return InertialFit(
         params=params,
         inertial_parameters=estimate,
@@ -291,4 +331,30 @@ def fit_inertial_parameters(
         least_squares_rms=rms(least_squares),
         converged=converged,
         num_steps=num_steps,
+        base_parameters=base,
+        implausible=implausible,
     )
+
+
+def _implausible(estimate, prior, links, identifiable) -> dict:
+    """{link: why} for estimates a long way from the prior's mass or at the edge of physical
+    consistency (the smallest eigenvalue of the pseudo-inertia below 10⁻⁶ of its trace),
+    naming the link's parameters the data do not determine."""
+    estimate, prior = np.asarray(estimate), np.asarray(prior)
+    pseudo = np.asarray(jax.vmap(_pseudo_inertia)(jnp.asarray(estimate)))
+    eigenvalues = np.linalg.eigvalsh(pseudo)
+    found = {}
+    for i, link in enumerate(links):
+        reasons = []
+        mass, prior_mass = estimate[i, 0], prior[i, 0]
+        if prior_mass > 0 and not 0.1 < mass / prior_mass < 10:
+            reasons.append(f"mass {mass:.3g} against the prior's {prior_mass:.3g}")
+        if eigenvalues[i, 0] < 1e-6 * np.sum(eigenvalues[i]):
+            reasons.append("at the edge of physical consistency (its mass lies on a plane, "
+                           "a line or a point)")
+        if reasons:
+            unseen = [name for name, seen in zip(PARAMETER_NAMES, identifiable[i]) if not seen]
+            if unseen:
+                reasons.append("not identifiable alone: " + ", ".join(unseen))
+            found[link] = ", ".join(reasons)
+    return found
