@@ -30,12 +30,12 @@ from ._fit.experiment import (
     MultipleShooting as MultipleShooting,
 )
 from ._fit.starts import MultiStart as MultiStart
-from ._fit.fit import (
+from ._fit.batch import fit_batch as fit_batch
+from ._fit.fit import fit as fit
+from ._fit.result import (
     FitResult as FitResult,
     IdentifiabilityWarning as IdentifiabilityWarning,
     LackOfFitWarning as LackOfFitWarning,
-    fit as fit,
-    fit_batch as fit_batch,
 )
 from ._fit.base_parameters import BaseParameters as BaseParameters
 from ._fit.torques import (
@@ -113,7 +113,8 @@ from ._system.joints import (
     Spherical as Spherical,
 )
 from ._system.multibody import MultibodySystem as MultibodySystem
-from ._system.tree import Link as Link, LinkLoad as LinkLoad, RigidBodyTree as RigidBodyTree
+from ._system.links import Link as Link, LinkLoad as LinkLoad
+from ._system.tree import RigidBodyTree as RigidBodyTree
 from ._system.urdf import example_robot_urdf as example_robot_urdf, from_urdf as from_urdf
 
 try:

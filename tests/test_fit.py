@@ -308,7 +308,7 @@ def test_a_continuation_stage_fits_the_first_samples_alone():
     """A stage of a horizon continuation keeps the record's shapes (its later samples at its
     last time, weight 0, so that all stages share one compiled program): it must end where a
     fit of the record cut after those samples ends, with the residual count of the cut."""
-    from jaxdyn._fit.fit import _fit_directly
+    from jaxdyn._fit.steps import _fit_directly
 
     experiment = oscillator_experiment()
     cut = jaxdyn.Experiment(experiment.ts[:51], experiment.observations[:51], [1.0], [0.0],
