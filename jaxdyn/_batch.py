@@ -17,7 +17,6 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ._compile import BATCHED_LOOPS, FUSION_EMITTERS, batch_emitters, filter_jit, gc_paused
 from ._dynamics import AbstractDynamics, straight_line_size
 from ._errors import error_if, reports_state
-from ._form.controlled import with_inputs
 from ._integrate import simulate
 from ._solution import RESULTS, Solution
 from ._state import numbers_as_arrays, state_dtype
@@ -119,7 +118,7 @@ def simulate_batch(
     """
     inputs = options.pop("inputs", None)
     if inputs is not None:  # shared by the members (a policy sees each member's state)
-        dynamics = with_inputs(dynamics, inputs)
+        dynamics = dynamics.with_inputs(inputs)
     _check_options(options, order)
     dtype = state_dtype(q0, u0)
     if isinstance(dynamics, AbstractDynamics):  # (a Contact scene appends its deformations)

@@ -1,6 +1,7 @@
 """The interface every formulation implements, and the only thing `simulate` knows about."""
 
 import abc
+import dataclasses
 import functools
 from collections.abc import Callable
 from typing import ClassVar
@@ -23,6 +24,10 @@ from ._linalg import (
 from ._state import public_method, under_a_trace
 from ._unroll import Symbol, give_up_beyond, is_constant, structure, unrolled
 from ._unroll import straight_line_size as straight_line_program_size
+
+
+class _NoInputs(ValueError):
+    """A formulation that declares no inputs was given some."""
 
 
 class AbstractDynamics(eqx.Module):
@@ -164,6 +169,38 @@ class AbstractDynamics(eqx.Module):
         """The quantity `name` (one of `saved_records`) at stacked states (ts, q, u), for
         the field of `jaxdyn.Solution` of that name."""
         raise ValueError(f"{type(self).__name__} records nothing named {name!r}.")
+
+    def with_inputs(self, inputs) -> "AbstractDynamics":
+        """This system driven by `inputs` (an array r, a signal r(t) or a diffrax path, or a
+        policy π(t, q, u, p)): the formulation that declares inputs (`jaxdyn.Controlled`)
+        takes them, wherever it sits in this one (a `Constrained` or `Contact` system wraps
+        it); an error if none declares inputs. `simulate(..., inputs=...)` calls this."""
+        driven, found = self, False
+        for name, inner in self._formulations_inside():
+            try:
+                replaced = inner.with_inputs(inputs)
+            except _NoInputs:
+                continue
+            driven = eqx.tree_at(lambda s, name=name: getattr(s, name), driven, replaced)
+            found = True
+        if not found:
+            raise _NoInputs(f"{type(self).__name__} declares no inputs: wrap the formulation "
+                            "as jaxdyn.Controlled(dynamics, input_map) to drive it.")
+        return driven
+
+    def applied_inputs(self):
+        """The inputs driving this system (as `with_inputs` gave them), or None where it
+        declares none: what a derivative through `simulate` can reach beyond q0, u0 and p."""
+        for _, inner in self._formulations_inside():
+            inputs = inner.applied_inputs()
+            if inputs is not None:
+                return inputs
+        return None
+
+    def _formulations_inside(self) -> list[tuple[str, "AbstractDynamics"]]:
+        """(field name, formulation) of the formulations this one wraps."""
+        return [(f.name, x) for f in dataclasses.fields(self)
+                if isinstance(x := getattr(self, f.name), AbstractDynamics)]
 
     def __hash__(self):
         # By structure (callbacks, static fields, array shapes), so that a bound method such

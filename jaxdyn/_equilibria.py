@@ -12,7 +12,7 @@ from jaxtyping import Array, Float
 from ._compile import filter_jit
 from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
-from ._form.controlled import find_controlled, with_inputs
+from ._form.controlled import find_controlled
 from ._state import check_vector, numbers_as_arrays
 
 _NOT_FOUND = ("No equilibrium found: the solver stopped with the residual |u̇| (and |φ| for "
@@ -103,7 +103,7 @@ def _equilibrium(dynamics, t, q, p, r, values, options):
 
     def residual(z, _):
         q_full, inputs = state(z)
-        driven = dynamics if controlled is None else with_inputs(dynamics, inputs)
+        driven = dynamics if controlled is None else dynamics.with_inputs(inputs)
         _, accelerations, _, _ = equations_of_motion(driven, t, q_full, zeros_u, p)
         phi = dynamics.state_constraints(t, q_full, zeros_u, p)[0]
         return jnp.concatenate([accelerations, phi])

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float
 from ._compile import filter_jit
 from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
-from ._form.controlled import find_controlled, with_inputs
+from ._form.controlled import find_controlled
 from ._state import check_vector, numbers_as_arrays, under_a_trace
 
 _NONFINITE = ("The linearisation is not finite: the equations of motion fail at the "
@@ -217,7 +217,7 @@ def state_jacobians(dynamics, t, q, u, p, r):
     n = q.shape[0]
 
     def field(x, r):
-        driven = dynamics if r.shape[0] == 0 else with_inputs(dynamics, r)
+        driven = dynamics if r.shape[0] == 0 else dynamics.with_inputs(r)
         rates, accelerations, _, _ = equations_of_motion(driven, t, x[:n], x[n:], p)
         return jnp.concatenate([rates, accelerations])
 
@@ -332,8 +332,8 @@ def _normal_modes(dynamics, t, q, p, r) -> Modes:
     if sum(x.shape[0] for x in jax.eval_shape(lambda: dynamics.state_constraints(t, q, u, p))):
         raise ValueError("normal_modes needs independent coordinates; for a constrained "
                          "system use jaxdyn.linearise(...).modes().")
-    driven = dynamics if find_controlled(dynamics) is None or r is None else with_inputs(
-        dynamics, r)
+    driven = dynamics if find_controlled(dynamics) is None or r is None else \
+        dynamics.with_inputs(r)
     mass_matrix = driven.form_equations(t, q, u, p)[0]
     if mass_matrix.shape != (q.shape[0], q.shape[0]):
         raise ValueError("normal_modes needs as many speeds as coordinates (u = q̇).")

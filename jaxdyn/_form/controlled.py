@@ -185,6 +185,10 @@ class Controlled(AbstractDynamics):
         return Controlled(self.dynamics, self.input_map if self.actuated is None
                           else self.actuated, inputs, time_dependent=self.time_dependent)
 
+    def applied_inputs(self):
+        """The inputs in force (`inputs`)."""
+        return self.inputs
+
     # -- the inputs -----------------------------------------------------------------------------
 
     def _input_matrix(self, t, q, p, num_speeds):
@@ -341,24 +345,6 @@ def _takes_time_only(fn) -> bool:
                   if x.kind in (x.POSITIONAL_ONLY, x.POSITIONAL_OR_KEYWORD)]
     variadic = any(x.kind == x.VAR_POSITIONAL for x in parameters)
     return len(positional) == 1 and not variadic
-
-
-def with_inputs(dynamics: AbstractDynamics, inputs) -> AbstractDynamics:
-    """`dynamics` with every `Controlled` inside it (a constrained controlled system holds
-    one) driven by `inputs`; an error if there is none."""
-    found = []
-
-    def replace(x):
-        if isinstance(x, Controlled):
-            found.append(x)
-            return x.with_inputs(inputs)
-        return x
-
-    out = jax.tree_util.tree_map(replace, dynamics, is_leaf=lambda x: isinstance(x, Controlled))
-    if not found:
-        raise ValueError(f"{type(dynamics).__name__} declares no inputs: wrap the formulation "
-                         "as jaxdyn.Controlled(dynamics, input_map) to drive it.")
-    return out
 
 
 def find_controlled(dynamics) -> Controlled | None:

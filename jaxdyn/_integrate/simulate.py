@@ -23,7 +23,6 @@ from .._errors import (
     library_checks_as_nan,
     reports_state,
 )
-from .._form.controlled import find_controlled, with_inputs
 from .._linalg import factorise
 from .._runge_kutta import UnrolledStages
 from .._sensitivities import MAX_FORWARD, differentiable_size
@@ -148,7 +147,7 @@ def simulate(
     """
     dtype = state_dtype(q0, u0)
     if inputs is not None:
-        dynamics = with_inputs(dynamics, inputs)
+        dynamics = dynamics.with_inputs(inputs)
     if isinstance(solver, AbstractStructurePreserving):
         stepsize_controller = fixed_steps(solver, rtol, atol, dt0, stepsize_controller)
     elif stepsize_controller is None:  # defaults filled in here, so that they are traced too
@@ -177,7 +176,7 @@ def simulate(
             raise ValueError("dense=True is not available with events: the solution is "
                              "piecewise, one solve per segment between events.")
     reachable = differentiable_size([x for x in jax.tree_util.tree_leaves(
-        (q0, u0, numbers[0], _inputs_of(dynamics), events))
+        (q0, u0, numbers[0], dynamics.applied_inputs(), events))
         if isinstance(x, jax.core.Tracer)])
 
     def run(budget, lean):
@@ -384,11 +383,6 @@ def _simulate(dynamics, q0, u0, numbers, options):
 
 
 _STATE_QUANTITIES = ("q", "u", "qd")
-
-
-def _inputs_of(dynamics):
-    controlled = find_controlled(dynamics)
-    return None if controlled is None else controlled.inputs
 
 
 def _check_save(save, dynamics):
