@@ -18,7 +18,7 @@ import pytest
 
 import jaxdyn
 import jaxdyn._chunking
-import jaxdyn._system.tree
+import jaxdyn._system.tree_levels
 
 from helpers import (PENDULUM, assert_close, central_difference, central_difference_params,
                      compiles)
@@ -71,7 +71,7 @@ def test_against_pinocchio(name, floating, monkeypatch):
     random states, to 1e-10 relative. The recursions run as scans over the links in the
     general (buffered) form for trees, which compiles fastest; the next test runs the Panda
     arm's articulated-body algorithm in straight-line code (the default for its size)."""
-    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 0)
+    monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 0)
     case = _pinocchio_case(name, floating)
     perm, p = case["permutation"], case["p"]
     tree = case["tree"]
@@ -229,7 +229,7 @@ def test_chain_against_hand_written_equations(n, monkeypatch):
     Python loop, N = 20 as a scan (the form for chains: the carry is the parent's state); and
     the scan once more for N = 3 (LOOP_MAX lowered)."""
     if n > 3:
-        monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 12)
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 12)
     rng = np.random.default_rng(n)
     q, u = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
     absolute = chain_by_hand(np.cumsum(q), np.cumsum(u))
@@ -239,7 +239,7 @@ def test_chain_against_hand_written_equations(n, monkeypatch):
         assert_close(dynamics.accelerations(0.0, q, u, None), expected_relative, rtol=0,
                      atol=1e-10 * np.max(np.abs(expected_relative)), err_msg=label)
     if n == 3:
-        monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 1)
         tree = chain_tree(n)  # a new tree: nothing compiled for it yet
         assert_close(jaxdyn.ArticulatedBody(tree).accelerations(0.0, q, u, None),
                      expected_relative, rtol=0, atol=1e-10 * np.max(np.abs(expected_relative)))
@@ -394,7 +394,7 @@ def test_a_robot_with_many_fixed_joints_against_pinocchio(loop_max, monkeypatch)
     dynamics and M against Pinocchio, in a scan whose floating base is taken before it
     (`scan_head`) and (slow set) as straight-line code, the default for 13 links, which the
     Panda checks by default."""
-    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", loop_max)
+    monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", loop_max)
     case = _pinocchio_case("anymal_c_simple_description/urdf/anymal.urdf", True, num_states=2)
     perm, p = case["permutation"], case["p"]
     assert len(case["tree"].links) == 78 and len(case["tree"].merge_fixed().links) == 13
@@ -434,8 +434,8 @@ def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
     dynamics and the mass matrix against Kane's equations of the same tree (`LOOP_MAX`
     lowered so that the tree is scanned), and the derivatives in q, u against central
     differences."""
-    monkeypatch.setattr(jaxdyn._system.tree, "LOOP_MAX", 1)
-    monkeypatch.setattr(jaxdyn._system.tree, "POSES_LOOP_MAX", 1)  # the poses scanned too
+    monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 1)
+    monkeypatch.setattr(jaxdyn._system.tree_levels, "POSES_LOOP_MAX", 1)  # the poses scanned too
     inertia = jnp.asarray(INERTIA)
     arm = _floating_arm()
     tree = jaxdyn.RigidBodyTree(list(arm.links) + [

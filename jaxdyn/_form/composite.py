@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._system import spatial
-from .._system.tree import RigidBodyTree, speed_subspaces, world_subspaces
+from .._system.subspaces import speed_subspaces, world_subspaces
+from .._system.tree import RigidBodyTree
 from .newton_euler import inertia_at_origin, inertial_parameters
 
 

@@ -53,7 +53,8 @@ from .._system.contact import (
     contact_kinematics,
     find_tree,
 )
-from .._system.tree import RigidBodyTree, _value
+from .._system.links import _value
+from .._system.tree import RigidBodyTree
 from .articulated import ArticulatedBody, articulated_body_algorithm
 from .controlled import Controlled
 

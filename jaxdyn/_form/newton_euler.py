@@ -26,8 +26,8 @@ import numpy as np
 
 from .._state import public_function
 from .._system import spatial
-from .._system.tree import (RigidBodyTree, ancestry, checked_state as _checked,
-                            world_subspaces)
+from .._system.subspaces import ancestry, world_subspaces
+from .._system.tree import RigidBodyTree, checked_state as _checked
 
 _SYMMETRIC = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])  # I_O's entries in π
 UPPER = (np.array([0, 0, 1, 0, 1, 2]), np.array([0, 1, 1, 2, 2, 2]))  # π[4:] within I_O

@@ -30,7 +30,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .tree import RigidBodyTree, _value, _vector3, ancestry, world_subspaces
+from .links import _value, _vector3
+from .subspaces import ancestry, world_subspaces
+from .tree import RigidBodyTree
 
 
 class AbstractTerrain(eqx.Module):

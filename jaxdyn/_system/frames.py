@@ -24,7 +24,8 @@ import numpy as np
 
 from .._state import public_function
 from . import spatial
-from .tree import RigidBodyTree, ancestry, checked_state as _checked, world_subspaces
+from .subspaces import ancestry, world_subspaces
+from .tree import RigidBodyTree, checked_state as _checked
 
 _AXES = ("world", "local")
 

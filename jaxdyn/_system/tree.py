@@ -16,15 +16,15 @@ together; the recursion itself runs as a Python loop for small trees (straight-l
 time does not grow with the number of links: over the links of a chain (the carry is the
 parent's state), and over the levels of a branched tree (the links of one depth together,
 each gathering its parent's state from the level above, or summing what its children pass up
-from the level below; consecutive levels of similar width in one scan, `_Levels`). A humanoid
-of 30 bodies is ten levels of at most four links: ten steps of four links' arithmetic at once
-rather than thirty steps of one, each of which would also read and write a buffer of every
-link's state (per state in a batch, G1's forward dynamics 30.6 → 12.4 µs).
+from the level below; consecutive levels of similar width in one scan: `tree_levels`). A
+humanoid of 30 bodies is ten levels of at most four links: ten steps of four links' arithmetic
+at once rather than thirty steps of one, each of which would also read and write a buffer of
+every link's state (per state in a batch, G1's forward dynamics 30.6 → 12.4 µs). The links
+themselves (`Link`, `LinkLoad`) are in `links`.
 """
 
 import dataclasses
-import functools
-from typing import Any, Callable, overload
+from typing import Callable, overload
 
 import equinox as eqx
 import jax
@@ -34,193 +34,15 @@ from jax.typing import ArrayLike
 
 from .._convention import call, scalar, vector
 from .._state import check_vector, frozen_constant
-from . import spatial
+# `tree_levels` as a module: its `LOOP_MAX` and `POSES_LOOP_MAX` are read when a recursion is
+# traced, so that setting them (as the tests do) takes effect.
+from . import spatial, tree_levels
 from .base import AbstractMultibody
-from .joints import AbstractJoint, Fixed
-
-# Trees with more links than this run their recursions as a `lax.scan` over links or levels
-# (compile time independent of the number of links); smaller ones as a Python loop
-# (straight-line code).
-LOOP_MAX = 24
-
-# The links' poses alone, a rotation and an offset composed per link, are straight-line code up
-# to this many links: Talos's 45 cost 1.6 µs per state against 2.1 level by level, its mass
-# matrix 6.2–6.9 against 7.3–7.8 µs, for 0.7 s more compile (which the articulated-body
-# algorithm, compiling in 4.2 s on Talos, does not take: 5.0 s with them).
-POSES_LOOP_MAX = 64
+from .joints import Fixed
+from .links import Link, LinkLoad, _rotation, _value, _vector3, _Welded
+from .tree_levels import _stacked
 
 JOINT_ARGS = ("q", "u", "p")
-
-
-def _vector3(x, name):
-    x = np.asarray(x, dtype=float)
-    if x.shape != (3,):
-        raise ValueError(f"{name} must be a 3-vector, got shape {x.shape}.")
-    return tuple(float(a) for a in x)
-
-
-def _rotation(x):
-    x = np.eye(3) if x is None else np.asarray(x, dtype=float)
-    if x.shape != (3, 3):
-        raise ValueError(f"A link's rotation must be a 3×3 matrix, got shape {x.shape}.")
-    if not np.allclose(x.T @ x, np.eye(3), atol=1e-9) or np.linalg.det(x) < 0:
-        raise ValueError("A link's rotation must be a proper rotation matrix (RᵀR = I, det 1).")
-    return tuple(tuple(float(a) for a in row) for row in x)
-
-
-def _value(x, p):
-    return jnp.asarray(x(p) if callable(x) else x)
-
-
-# A band of levels costs its levels × its width in link-steps; a further band, about this many
-# more (its scans' set-up and the hand-over between bands).
-BAND_COST = 6
-
-
-class _Band:
-    """Consecutive levels of a tree taken together in one scan, each padded to the band's
-    widest: `slots` (L, W) the link (counted from the head) in each slot, padding slots
-    repeating the last link (a leaf, so that a padded slot computes what a real leaf would);
-    `parent_slots` (L, W) each slot's parent in the level above, the identity for the band's
-    first level, whose parents `entry` (W,) picks from the previous band's last level (in the
-    first band: `roots_parents`, the links before the scan or the world); `children`
-    (L, W, K) each slot's children in the level below, W where there is none (a row of
-    zeros), and for the band's last level, unless it is the tree's, the identity: what its
-    children in the next band passed up, `handoff` (W, K) picks and sums before the scan."""
-
-    def __init__(self, levels, slot_of, parents, head, pad, following):
-        self.width = width = max(len(level) for level in levels)
-        self.slots = np.array([[i - head for i in level] + [pad] * (width - len(level))
-                               for level in levels], dtype=np.int32)
-        self.entry = np.array([slot_of[parents[i]] if parents[i] >= head else 0
-                               for i in levels[0]] + [0] * (width - len(levels[0])),
-                              dtype=np.int32)
-        self.roots_parents = [parents[i] for i in levels[0]] + [-1] * (width - len(levels[0]))
-        self.parent_slots = np.array(
-            [list(range(width))] + [[slot_of[parents[i]] for i in level]
-                                    + [0] * (width - len(level)) for level in levels[1:]],
-            dtype=np.int32)
-        below = levels[1:] + ([following] if following else [])
-        kids = [[[slot_of[c] for c in level_below if parents[c] == i] for i in level]
-                for level, level_below in zip(levels, below)]
-        most = max([1] + [len(k) for level in kids for k in level])
-        self.children = np.full((len(levels), width, most), width, dtype=np.int32)
-        for d, level in enumerate(kids[:len(levels) - (1 if following else 0)]):
-            for s, k in enumerate(level):
-                self.children[d, s, :len(k)] = k
-        self.handoff = np.full((width, most), -1, dtype=np.int32)  # −1: no child
-        if following:
-            self.children[-1, :, 0] = np.arange(width)
-            for s, k in enumerate(kids[-1]):
-                self.handoff[s, :len(k)] = k
-
-    def by_slot(self, x):
-        """Per-link data (N − head, …) → (L, W, …)."""
-        return x[self.slots]
-
-
-class _Levels:
-    """The links of a tree beyond its first `head` taken level by level (their depth below
-    the links before them), the levels grouped into bands of consecutive levels (`_Band`) so
-    that narrow levels are not padded to the width of the widest: the bands minimise the
-    link-steps of the padded levels, plus `BAND_COST` per band (Talos: levels of 3, 3, 5, 5,
-    4, 4, 2, 2, 2, 8, 6 links)."""
-
-    def __init__(self, parents, head):
-        n = len(parents)
-        depth = {}
-        for i in range(head, n):
-            depth[i] = 0 if parents[i] < head else depth[parents[i]] + 1
-        members = [[i for i in range(head, n) if depth[i] == d]
-                   for d in range(max(depth.values()) + 1)]
-        slot_of = {i: s for level in members for s, i in enumerate(level)}
-        # cheapest split of the levels into bands (dynamic programming over the cut points)
-        count = len(members)
-        best = [0.0] + [np.inf] * count
-        cut = [0] * (count + 1)
-        for j in range(1, count + 1):
-            for i in range(j):
-                cost = best[i] + (j - i) * max(len(m) for m in members[i:j]) + BAND_COST
-                if cost < best[j]:
-                    best[j], cut[j] = cost, i
-        edges, j = [], count
-        while j:
-            edges.append((cut[j], j))
-            j = cut[j]
-        edges.reverse()
-        pad = n - 1 - head
-        self.bands = [_Band(members[i:j], slot_of, parents, head, pad,
-                            members[j] if j < count else None) for i, j in edges]
-        offsets = np.cumsum([0] + [b.slots.size for b in self.bands])
-        flat = {}
-        for band, offset, (i, j) in zip(self.bands, offsets, edges):
-            for d, level in enumerate(members[i:j]):
-                for s, link in enumerate(level):
-                    flat[link] = offset + d * band.width + s
-        self.order = np.array([flat[i] for i in range(head, n)], dtype=np.int32)
-        self.num_roots = len(members[0])
-
-    def by_link(self, *per_band):
-        """The bands' per-slot results (L_b, W_b, …) → (N − head, …) in link order."""
-        return jnp.concatenate([x.reshape((-1,) + x.shape[2:]) for x in per_band])[self.order]
-
-
-@functools.lru_cache(maxsize=64)
-def _levels(parents: tuple[int, ...], head: int) -> _Levels:
-    """The level structure of a tree (its parents' indices), built once per tree shape: every
-    recursion of every trace asks for it."""
-    return _Levels(parents, head)
-
-
-def _stacked(first, rest) -> Any:
-    """The states or outputs of a recursion, the head's (a list) and the rest's (stacked, or
-    None), stacked over all links."""
-    tree_map = jax.tree_util.tree_map
-    if not first:
-        return rest
-    stacked = tree_map(lambda *xs: jnp.stack(xs), *first)
-    if rest is None:
-        return stacked
-    return tree_map(lambda x, y: jnp.concatenate([x.astype(y.dtype), y]), stacked, rest)
-
-
-def ancestry(tree, i) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """The links from the root to link i (root first, i last), and the indices of their
-    coordinates and speeds in the whole tree's q and u: what moves link i."""
-    chain = [i]
-    while tree.parents[chain[-1]] >= 0:
-        chain.append(tree.parents[chain[-1]])
-    chain.reverse()
-    q_index, u_index = (np.concatenate([np.arange(slices[tree.links[k].name].start,
-                                                  slices[tree.links[k].name].stop, dtype=int)
-                                        for k in chain])
-                        for slices in (tree.coordinate_slices(), tree.speed_slices()))
-    return chain, q_index, u_index
-
-
-def speed_subspaces(tree) -> tuple[np.ndarray, np.ndarray]:
-    """For each speed of `tree`, its link (m,) and its column of that link's joint motion
-    subspace (m, 6), rows (ω, v) in the link's axes (constant for every joint type here)."""
-    links, columns = [], []
-    for i, link in enumerate(tree.links):
-        subspace = np.asarray(link.joint.subspace(), dtype=float).reshape(6, -1)
-        links += [i] * subspace.shape[1]
-        columns += list(subspace.T)
-    return np.array(links, dtype=np.int32), np.array(columns).reshape(-1, 6)
-
-
-def world_subspaces(tree, rotation, origin, point=None) -> tuple[jax.Array, jax.Array]:
-    """Every speed's motion subspace s_k = (ω_k, v_k) (m, 3) each, in the world's axes at a
-    point P of the world (default its origin): the speed's joint S on link i, with the link
-    at (R_i, r_i), turned and moved, ω_k = R_i S_ω, v_k = R_i S_v + ω_k × (P − r_i). It is
-    the column of speed k in the Jacobian of any point moved by it (Featherstone, 2008, §4.6),
-    from the links' world poses `rotation` (N, 3, 3) and `origin` (N, 3)."""
-    link_of, subspace = speed_subspaces(tree)
-    subspace = jnp.asarray(subspace, rotation.dtype)
-    turn, at = rotation[link_of], origin[link_of]
-    omega = spatial.matvec(turn, subspace[:, :3])
-    offset = -at if point is None else point[None] - at
-    return omega, spatial.matvec(turn, subspace[:, 3:]) + spatial.cross(omega, offset)
 
 
 @overload
@@ -248,111 +70,6 @@ def checked_state(tree, q, u=None, ud=None):
         ud = check_vector(ud, "u̇ (ud)", tree.num_speeds)
     return q, u, ud
 
-
-class Link(eqx.Module):
-    """A rigid link of a `RigidBodyTree`, and the joint that moves it relative to its parent.
-
-    **Arguments:**
-
-    - `name`: unique within the tree.
-    - `joint`: a `jaxdyn.Revolute`, `Prismatic`, `Spherical`, `Planar`, `Free` or `Fixed`.
-    - `parent`: the parent link's name, or None for the world (a fixed base).
-    - `translation`, `rotation`: the joint frame's placement in the parent's frame (origin,
-      and axes as the columns of a rotation matrix); the link's frame coincides with the joint
-      frame when the joint is at rest (q = 0, identity quaternion).
-    - `mass`, `com` (centre of mass, link frame), `inertia` (3 × 3, about the centre of mass,
-      link axes): numbers/arrays, or functions of the parameters p (to fit them).
-    - `stiffness`, `damping`, `rest`: a joint spring ½ k (q − rest)² and damper −c q̇ (for
-      revolute and prismatic joints); numbers or functions of p, or None.
-    """
-
-    name: str = eqx.field(static=True)
-    joint: AbstractJoint
-    parent: str | None = eqx.field(static=True, default=None)
-    translation: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
-                                   converter=lambda x: _vector3(x, "A link's translation"))
-    rotation: tuple = eqx.field(static=True, default=None, converter=_rotation)
-    mass: float | Callable = eqx.field(default=0.0, converter=frozen_constant)
-    com: jax.Array | Callable = eqx.field(default=(0.0, 0.0, 0.0), converter=frozen_constant)
-    inertia: jax.Array | Callable | None = eqx.field(default=None, converter=frozen_constant)
-    stiffness: float | Callable | None = eqx.field(default=None, converter=frozen_constant)
-    damping: float | Callable | None = eqx.field(default=None, converter=frozen_constant)
-    rest: float = eqx.field(static=True, default=0.0)
-
-    def __check_init__(self):
-        if not isinstance(self.joint, AbstractJoint):
-            raise ValueError(f"Link {self.name!r}: joint must be a jaxdyn joint (Revolute, "
-                             f"Prismatic, Spherical, Planar, Free, Fixed), got "
-                             f"{type(self.joint).__name__}.")
-        if (self.stiffness is not None or self.damping is not None) and self.joint.nv != 1:
-            raise ValueError(f"Link {self.name!r}: joint springs and dampers apply to "
-                             "revolute and prismatic joints (one coordinate).")
-
-
-class LinkLoad(eqx.Module):
-    """A force (at a point of a link) and a torque applied to a link, in world axes.
-
-    **Arguments:**
-
-    - `link`: the link's name.
-    - `force`: F(q, u, p) → (3,) in world axes, or None.
-    - `torque`: τ(q, u, p) → (3,) in world axes, or None.
-    - `point`: where the force acts, in the link's frame (default its origin).
-
-    Both take t first in a time-dependent tree.
-    """
-
-    link: str = eqx.field(static=True)
-    force: Callable | None = None
-    torque: Callable | None = None
-    point: tuple = eqx.field(static=True, default=(0.0, 0.0, 0.0),
-                             converter=lambda x: _vector3(x, "A load's point"))
-
-
-class _Welded(eqx.Module):
-    """The mass, centre of mass or central inertia of links welded together by fixed joints,
-    in the axes of the first (the body): with link k placed at (R_k, r_k) in the body,
-
-        m = Σ m_k,   c = Σ m_k c'_k / m  (c'_k = r_k + R_k c_k),
-        I = Σ R_k I_k R_kᵀ + m_k (|d_k|² 1 − d_k d_kᵀ),   d_k = c'_k − c
-
-    (Huygens–Steiner). A body of no mass has its centre at its origin."""
-
-    links: tuple[Link, ...]
-    rotations: tuple = eqx.field(static=True)
-    translations: tuple = eqx.field(static=True)
-    part: str = eqx.field(static=True)
-
-    def __call__(self, p):
-        # As arrays over the welded links (stacked), not a Python sum per link: ANYmal-C's 65
-        # welded links written out per link were 45 % of its forward dynamics' program.
-        masses = [jnp.asarray(_value(link.mass, p)) for link in self.links]
-        dtype = jnp.result_type(*masses, float)
-        masses = jnp.stack(masses).astype(dtype)
-        mass = jnp.sum(masses)
-        if self.part == "mass":
-            return mass
-        rotations = np.stack(self.rotations).astype(dtype)
-        centres = np.stack(self.translations).astype(dtype) + jnp.einsum(
-            "kij,kj->ki", rotations,
-            jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links]))
-        first = masses @ centres
-        # Massless bodies (URDF's dummy links) have their centre at the origin: a safe divisor
-        # keeps the derivative finite where the mass is zero.
-        massless = mass == 0
-        centre = jnp.where(massless, 0.0, first / jnp.where(massless, 1.0, mass))
-        if self.part == "com":
-            return centre
-        with_inertia = [k for k, link in enumerate(self.links) if link.inertia is not None]
-        total = jnp.zeros((3, 3), dtype)
-        if with_inertia:
-            inertias = jnp.stack([jnp.asarray(_value(self.links[k].inertia, p), dtype)
-                                  for k in with_inertia])
-            turned = rotations[np.asarray(with_inertia)]
-            total = jnp.einsum("kij,kjl,kml->im", turned, inertias, turned)
-        d = centres - centre[None, :]
-        return total + (masses @ jnp.sum(d * d, axis=1)) * jnp.eye(3, dtype=dtype) - jnp.einsum(
-            "k,ki,kj->ij", masses, d, d)
 
 
 class RigidBodyTree(AbstractMultibody):
@@ -566,7 +283,7 @@ class RigidBodyTree(AbstractMultibody):
         return self._by_link(twists, u.dtype)
 
     def _is_chain(self):
-        return all(parent == i - 1 for i, parent in enumerate(self.parents))
+        return tree_levels._is_chain(self.parents)
 
     def scan_head(self, loop_max: int | None = None) -> int:
         """How many leading links a recursion takes one by one before its `lax.scan` (trees of
@@ -575,7 +292,7 @@ class RigidBodyTree(AbstractMultibody):
         carry the width of their own joints (one speed each in most robots), not the base's
         six."""
         n = len(self.links)
-        if n <= (LOOP_MAX if loop_max is None else loop_max):
+        if n <= (tree_levels.LOOP_MAX if loop_max is None else loop_max):
             return n
         head = 0
         while head < n and self.parents[head] < 0 and self.links[head].joint.nv > 1:
@@ -616,89 +333,12 @@ class RigidBodyTree(AbstractMultibody):
         step(state of parent(i), data_i), the state passed to the children (of the same shape
         for every link of the scan and for the roots it hangs from). Returns the outputs the
         same way, a list and stacked."""
-        parents, tree_map = self.parents, jax.tree_util.tree_map
-        n, head = len(parents), len(head_links)
-        states, outputs = [], []
-        for i in range(head):
-            state, out = step(root if parents[i] < 0 else states[parents[i]], head_links[i])
-            states.append(state)
-            outputs.append(out)
-        if head == n:
-            return outputs, None
-        if self._is_chain():  # the carry is the parent's state: no level to gather from
-            return outputs, jax.lax.scan(step, states[-1] if states else root, rest)[1]
-        # Level by level (links of one depth below the head together, `_Levels`): the carry
-        # is the previous level's states, each link's parent gathered from it.
-        levels = _levels(parents, head)
-
-        def body(previous, xs):
-            parent_slot, data = xs
-            return jax.vmap(step)(tree_map(lambda x: x[parent_slot], previous), data)
-
-        scanned, last = [], None
-        for band in levels.bands:
-            if last is None:
-                start = tree_map(lambda *xs: jnp.stack(xs), *[
-                    root if parent < 0 else states[parent] for parent in band.roots_parents])
-            else:
-                start = tree_map(lambda x: x[band.entry], last)
-            last, out = jax.lax.scan(body, start, (band.parent_slots,
-                                                   tree_map(band.by_slot, rest)))
-            scanned.append(out)
-        return outputs, tree_map(levels.by_link, *scanned)
+        return tree_levels.forward_split(self.parents, step, root, head_links, rest)
 
     def backward_split(self, step, zero, head_links, rest):
         """`backward` with the data split as in `forward_split`: returns the head's outputs (a
         list), the rest's (stacked, or None) and what the roots passed to the world."""
-        parents, tree_map = self.parents, jax.tree_util.tree_map
-        n, head = len(parents), len(head_links)
-        accumulated = [zero] * (n + 1)  # the last for the world
-        scanned = None
-        if head < n:
-            if self._is_chain():  # the carry is what the child passes up
-                def chain_body(carry, data):
-                    out, up = step(carry, data)
-                    return tree_map(jnp.add, zero, up), out
-
-                up, scanned = jax.lax.scan(chain_body, zero, rest, reverse=True)
-                accumulated[head - 1 if head else n] = up
-            else:  # level by level, leaves first: the carry is what the level below passes up
-                levels = _levels(parents, head)
-
-                def summed(below, children):  # each slot's children's (W: a row of zeros)
-                    return tree_map(lambda b: jnp.sum(jnp.concatenate(
-                        [b, jnp.zeros_like(b[:1])])[children], axis=1), below)
-
-                def body(below, xs):
-                    children, data = xs
-                    total = tree_map(lambda z, s: z[None] + s, zero, summed(below, children))
-                    out, up = jax.vmap(step)(total, data)
-                    return up, out
-
-                per_band, up = [None] * len(levels.bands), None
-                for b in reversed(range(len(levels.bands))):
-                    band = levels.bands[b]
-                    if up is None:  # the tree's last level: nothing below
-                        start = tree_map(lambda z: jnp.zeros((band.width,) + jnp.shape(z),
-                                                             jnp.result_type(z)), zero)
-                    else:  # what the next band's first level passed up, summed per parent
-                        width_below = jax.tree_util.tree_leaves(up)[0].shape[0]
-                        start = summed(up, np.where(band.handoff < 0, width_below,
-                                                    band.handoff))
-                    up, per_band[b] = jax.lax.scan(body, start, (band.children,
-                                                                 tree_map(band.by_slot, rest)),
-                                                   reverse=True)
-                scanned = tree_map(levels.by_link, *per_band)
-                for slot, parent in enumerate(levels.bands[0].roots_parents[:levels.num_roots]):
-                    target = n if parent < 0 else parent
-                    accumulated[target] = tree_map(lambda a, x: a + x[slot],
-                                                   accumulated[target], up)
-        outputs = [None] * head
-        for i in reversed(range(head)):
-            outputs[i], up = step(accumulated[i], head_links[i])
-            target = n if parents[i] < 0 else parents[i]
-            accumulated[target] = tree_map(jnp.add, accumulated[target], up)
-        return outputs, scanned, accumulated[n]
+        return tree_levels.backward_split(self.parents, step, zero, head_links, rest)
 
     def link_states(self, t, q, u, p):
         """World poses and velocities of the links: (R_WC (N, 3, 3), r_WC (N, 3), ω (N, 3),
@@ -734,7 +374,7 @@ class RigidBodyTree(AbstractMultibody):
 
         root = (jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype))
         return self.forward(step, root, (rotation, translation),
-                            loop_max=POSES_LOOP_MAX if alone else None)
+                            loop_max=tree_levels.POSES_LOOP_MAX if alone else None)
 
     # -- inertia, energies and forces ---------------------------------------------------------
 

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .joints import Fixed, Free, Planar, Prismatic, Revolute
-from .tree import Link, RigidBodyTree
+from .links import Link
+from .tree import RigidBodyTree
 
 
 class LinkParameter(eqx.Module):
