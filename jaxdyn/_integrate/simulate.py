@@ -145,6 +145,9 @@ def simulate(
     equations fail (`RESULTS.singular_mass_matrix`, `nonfinite_forcing`,
     `nonfinite_equations`).
     """
+    if not isinstance(dynamics, AbstractDynamics):
+        raise ValueError(f"dynamics must be a jaxdyn.AbstractDynamics (e.g. "
+                         f"jaxdyn.Lagrangian), got {type(dynamics).__name__}.")
     dtype = state_dtype(q0, u0)
     if inputs is not None:
         dynamics = dynamics.with_inputs(inputs)
@@ -229,29 +232,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
     p, t0, t1, ts, rtol, atol, dt0 = numbers
     (dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable, lean,
      events, max_events) = options
-    q0 = check_vector(q0, "q0")
-    u0 = check_vector(u0, "u0")
-    if q0.dtype != u0.dtype:
-        raise ValueError(
-            f"q0 and u0 must share a dtype, got {q0.dtype} and {u0.dtype}. Use float64 "
-            "(jax.config.update('jax_enable_x64', True)) for accurate mechanics."
-        )
-    if not isinstance(dynamics, AbstractDynamics):
-        raise ValueError(
-            f"dynamics must be a jaxdyn.AbstractDynamics (e.g. jaxdyn.Lagrangian), got "
-            f"{type(dynamics).__name__}."
-        )
-    q0 = check_vector(dynamics.initial_coordinates(q0, u0, p), "q0")
-    dtype = q0.dtype
-    # Strongly typed (`jnp.full(n, 0.3)` is weakly typed): as the solve's state is, so that
-    # the equations traced for the shape check are the solve's (a weak type retraces them).
-    q0, u0 = jnp.asarray(q0, dtype), jnp.asarray(u0, dtype)
-    check_parameter_dtypes(p, dtype)
-    t0 = jnp.asarray(t0, dtype)
-    t1 = jnp.asarray(t1, dtype)
-    _check_shapes(dynamics, t0, q0, u0, p)
-    if isinstance(solver, AbstractStructurePreserving):
-        solver.check(dynamics, t0, q0, u0, p)
+    q0, u0, t0, t1 = _checked_start(dynamics, q0, u0, p, t0, t1, solver)
     # The lean program (called with values) carries no check that calls the host: its
     # invalid arguments only make it fail, and the full program, run then, names them. So it
     # holds no host callback, which also lets JAX's persistent compilation cache keep it.
@@ -272,59 +253,20 @@ def _simulate(dynamics, q0, u0, numbers, options):
     if size is None and constant_mass_matrix(dynamics, t0, q0, u0, p):
         factorisation = factorise(dynamics.mass_matrix(t0, q0, u0, p), unrolled=False,
                                   blocks=mass_matrix_blocks(dynamics, t0, q0, u0, p))
-
-    records = tuple(name for name in save if name not in _STATE_QUANTITIES)
-    keep_q = bool(records) or "q" in save or "qd" in save
-    keep_u = bool(records) or "u" in save or "qd" in save
-
     layout = Layout(q0.shape[0], not isinstance(solver, AbstractStructurePreserving),
                     u0.shape[0])
-
-    def observe(t, y, args):
-        q, u = layout.split(y)
-        return q if keep_q else None, u if keep_u else None
-
-    if ts is None:
-        requested = diffrax.SubSaveAt(t1=True, fn=observe)
-    else:
-        ts = jnp.asarray(ts, dtype)
-        if lean:
-            invalid += [pred for pred, _ in save_time_checks(ts, t0, t1)]
-        else:
-            ts = checked_save_times(ts, t0, t1)
-        requested = diffrax.SubSaveAt(ts=ts, fn=observe)
-    # The last state reached is saved too: where the solve stops early, it is the state from
-    # which the failure is diagnosed.
-    saveat = diffrax.SaveAt(subs=[requested, diffrax.SubSaveAt(t1=True)], dense=dense,
-                            controller_state=True)
+    saveat, keep_q, keep_u = _save_at(save, layout, ts, t0, t1, dense, invalid if lean
+                                      else None)
     if stepsize_controller is None:
         assert rtol is not None and atol is not None  # `simulate` filled in the defaults
         stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol)
     forward = adjoint is None and not dense and reachable <= MAX_FORWARD
-    # Events whose contacts can rest put the held-force solve into the vector field, and a
-    # hybrid solve also evaluates the field in its root find, its guards' rates and its
-    # saves: written out, the stages multiply that program (a particle under rigid contact
-    # with friction, Dopri8: 12 → 6 s of XLA, run time 1.3 → 1.1 ms as a loop).
-    resting_field = events is not None and can_rest(events, dynamics, t0, q0, u0, p)
-    if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
-            and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward
-            and not resting_field):
-        # The same steps, without a loop over the stages (2–3× faster on small systems).
-        # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
-        # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's
-        # `ForwardMode` (chosen to be differentiated: jvp and vmap of written-out stages
-        # put the equations into the program once per stage and tangent; a fit of the
-        # torque-driven double pendulum, three experiments, compiled in 44.5 s written out
-        # and 23.8 s as a loop; a later fit took 0.89 and 1.28 s). Forward sensitivities
-        # (`forward`) keep them written out, primal and sensitivity equations alike: as a
-        # loop, the double pendulum's gradient compiled 2–3× faster but ran 4× slower.
-        solver = UnrolledStages(solver)
-    if dynamics.state_projection() is not None:
-        solver = Projected(solver)
+    solver = _stepper(solver, dynamics, size, forward, events is not None and can_rest(
+        events, dynamics, t0, q0, u0, p))
     solution = solve(solver, t0, t1, dt0, layout.join(q0, u0),
-                      (dynamics, p, factorisation, layout), saveat,
-                      guard(stepsize_controller), adjoint, max_steps, forward=forward,
-                      events=events, max_events=max_events)
+                     (dynamics, p, factorisation, layout), saveat,
+                     guard(stepsize_controller), adjoint, max_steps, forward=forward,
+                     events=events, max_events=max_events)
     # Saved (`saveat`): the states (requested, last), their times and the controller's state.
     assert solution.ys is not None and solution.ts is not None
     assert solution.controller_state is not None
@@ -359,13 +301,98 @@ def _simulate(dynamics, q0, u0, numbers, options):
             (ts_out, event_record), result, failure, (t0, q0, u0), t1,
             (t_last, q_last[0], u_last[0]), max_steps, condition,
             isinstance(solver, AbstractStructurePreserving))
+    return _solution(dynamics, p, save, solution, ts_out, q, u, result, layout, event_record,
+                     dense)
+
+
+def _checked_start(dynamics, q0, u0, p, t0, t1, solver):
+    """(q0, u0, t0, t1) checked (vectors of one dtype, the system's shapes, parameters of
+    that dtype) and strongly typed in the state's dtype."""
+    q0 = check_vector(q0, "q0")
+    u0 = check_vector(u0, "u0")
+    if q0.dtype != u0.dtype:
+        raise ValueError(
+            f"q0 and u0 must share a dtype, got {q0.dtype} and {u0.dtype}. Use float64 "
+            "(jax.config.update('jax_enable_x64', True)) for accurate mechanics."
+        )
+    q0 = check_vector(dynamics.initial_coordinates(q0, u0, p), "q0")
+    dtype = q0.dtype
+    # Strongly typed (`jnp.full(n, 0.3)` is weakly typed): as the solve's state is, so that
+    # the equations traced for the shape check are the solve's (a weak type retraces them).
+    q0, u0 = jnp.asarray(q0, dtype), jnp.asarray(u0, dtype)
+    check_parameter_dtypes(p, dtype)
+    t0 = jnp.asarray(t0, dtype)
+    t1 = jnp.asarray(t1, dtype)
+    _check_shapes(dynamics, t0, q0, u0, p)
+    if isinstance(solver, AbstractStructurePreserving):
+        solver.check(dynamics, t0, q0, u0, p)
+    return q0, u0, t0, t1
+
+
+def _save_at(save, layout, ts, t0, t1, dense, invalid):
+    """(diffrax's `SaveAt`, whether q and u are kept): the requested saves (`ts`, or t1) of
+    what `save` needs, and the last state reached, from which a failure is diagnosed. The
+    save times are checked, or (a lean program: `invalid` a list) their checks appended to
+    `invalid`."""
+    records = [name for name in save if name not in _STATE_QUANTITIES]
+    keep_q = bool(records) or "q" in save or "qd" in save
+    keep_u = bool(records) or "u" in save or "qd" in save
+
+    def observe(t, y, args):
+        q, u = layout.split(y)
+        return q if keep_q else None, u if keep_u else None
+
+    if ts is None:
+        requested = diffrax.SubSaveAt(t1=True, fn=observe)
+    else:
+        ts = jnp.asarray(ts, t0.dtype)
+        if invalid is not None:
+            invalid += [pred for pred, _ in save_time_checks(ts, t0, t1)]
+        else:
+            ts = checked_save_times(ts, t0, t1)
+        requested = diffrax.SubSaveAt(ts=ts, fn=observe)
+    saveat = diffrax.SaveAt(subs=[requested, diffrax.SubSaveAt(t1=True)], dense=dense,
+                            controller_state=True)
+    return saveat, keep_q, keep_u
+
+
+def _stepper(solver, dynamics, size, forward, resting_field):
+    """The solver as it steps: an explicit Runge–Kutta method's stages written out for small
+    equations differentiated forward (`UnrolledStages`), the step projected onto the
+    constraints where the system has a projection (`Projected`)."""
+    # Events whose contacts can rest put the held-force solve into the vector field, and a
+    # hybrid solve also evaluates the field in its root find, its guards' rates and its
+    # saves: written out, the stages multiply that program (a particle under rigid contact
+    # with friction, Dopri8: 12 → 6 s of XLA, run time 1.3 → 1.1 ms as a loop).
+    if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
+            and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward
+            and not resting_field):
+        # The same steps, without a loop over the stages (2–3× faster on small systems).
+        # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
+        # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's
+        # `ForwardMode` (chosen to be differentiated: jvp and vmap of written-out stages
+        # put the equations into the program once per stage and tangent; a fit of the
+        # torque-driven double pendulum, three experiments, compiled in 44.5 s written out
+        # and 23.8 s as a loop; a later fit took 0.89 and 1.28 s). Forward sensitivities
+        # (`forward`) keep them written out, primal and sensitivity equations alike: as a
+        # loop, the double pendulum's gradient compiled 2–3× faster but ran 4× slower.
+        solver = UnrolledStages(solver)
+    if dynamics.state_projection() is not None:
+        solver = Projected(solver)
+    return solver
+
+
+def _solution(dynamics, p, save, solution, ts, q, u, result, layout, events, dense):
+    """The `Solution`: what `save` asks for (q̇ = K u and the formulation's records formed
+    from the saved states), the result code and the solver's statistics."""
     qd = None
     if "qd" in save:
         assert q is not None and u is not None  # kept (`keep_q`, `keep_u`)
-        qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts_out, q, u, p)
-    recorded = {name: dynamics.record(name, ts_out, q, u, p) for name in records}
+        qd = jax.vmap(dynamics.coordinate_rates, in_axes=(0, 0, 0, None))(ts, q, u, p)
+    recorded = {name: dynamics.record(name, ts, q, u, p)
+                for name in save if name not in _STATE_QUANTITIES}
     return Solution(
-        ts=ts_out,
+        ts=ts,
         q=q if "q" in save else None,
         u=u if "u" in save else None,
         qd=qd,
@@ -378,7 +405,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
         inputs=recorded.get("inputs"),
         contact=recorded.get("contact"),
         layout=layout,
-        events=event_record,
+        events=events,
     )
 
 
