@@ -241,24 +241,8 @@ def fit_inertial_parameters(
 
     **Returns:** an `InertialFit`.
     """
-    q, u, ud, tau = (jnp.asarray(x, dtype=float) for x in (q, u, ud, tau))
-    if tau.ndim != 2 or tau.shape[1] != tree.num_speeds:
-        raise ValueError(f"tau must have shape (k, {tree.num_speeds}) (one row of joint forces "
-                         f"per sample), got {tau.shape}.")
+    q, u, ud, tau, root_weights = _checked_records(tree, q, u, ud, tau, weights)
     k, m = tau.shape
-    for name, x, width in (("q", q, tree.num_coordinates), ("u", u, m), ("ud", ud, m)):
-        if x.shape != (k, width):
-            raise ValueError(f"{name} must have shape ({k}, {width}) to match tau, got "
-                             f"{x.shape}.")
-        if not bool(jnp.all(jnp.isfinite(x))):
-            raise ValueError(f"{name} holds NaN or inf.")
-    if not bool(jnp.all(jnp.isfinite(tau))):
-        raise ValueError("tau holds NaN or inf.")
-    root_weights = jnp.sqrt(jnp.broadcast_to(
-        jnp.asarray(1.0 if weights is None else weights, dtype=float), (k, m)))
-    if not bool(jnp.all(jnp.isfinite(root_weights))):
-        raise ValueError("weights must be finite and non-negative.")
-
     names = [link.name for link in tree.links]
     unknown = sorted(set(links or ()) - set(names))
     if unknown:
@@ -287,42 +271,20 @@ def fit_inertial_parameters(
     rank = int(np.sum(np.asarray(singular) > 1e-10 * float(singular[0])))
     c = left.T @ b
     least_squares = directions[:rank].T @ (c[:rank] / singular[:rank])
-    r_matrix = singular[:, None] * directions
-    unseen = directions[rank:]  # the combinations of π the torques do not see
-    base = base_parameters(a, b, rank, links, unseen)
-    # A prior whose pseudo-inertia is singular (a massless link) is nudged inside the cone.
-    pseudo = jax.vmap(_pseudo_inertia)(prior[fitted])
-    nudge = 1e-9 * jnp.max(jnp.trace(pseudo, axis1=1, axis2=2)) * jnp.eye(4, dtype=q.dtype)[None]
-    inside = np.linalg.eigvalsh(np.asarray(pseudo + nudge))[:, 0] > 0
-    if not np.all(inside):
-        raise ValueError(f"the prior of links {[links[i] for i in np.nonzero(~inside)[0]]} is "
-                         "not a rigid body (its pseudo-inertia is not positive semi-definite): "
-                         "give physically consistent prior masses, centres of mass and "
-                         "inertias.")
-    start = pseudo + nudge
-    weight = prior_weight * singular[0] ** 2 * jnp.sum(start**2, axis=(1, 2))
-    problem = (r_matrix, c, jnp.linalg.inv(start), weight, r_matrix.T @ r_matrix)
-    consistent, converged, num_steps = _newton(
-        problem, jax.vmap(_from_pseudo_inertia)(start).ravel(), tolerance, max_steps)
-    consistent = consistent.reshape(-1, 10)
-
-    estimate = prior.at[fitted].set(consistent)
-    params = jax.tree_util.tree_map(lambda x: x, p)  # a copy: p itself stays the prior
-    for index, pi in zip(fitted, consistent):
-        link = tree.links[index]
-        for key, value in zip(("mass", "com", "inertia"), _physical(pi)):
-            parameter = getattr(link, key)
-            params[parameter.link] = {**params[parameter.link], parameter.key: value}
-    rms = lambda x: float(jnp.sqrt(jnp.mean((a @ x - b) ** 2)))  # noqa: E731
+    base = base_parameters(a, b, rank, links, directions[rank:])
+    consistent, converged, num_steps = _consistent(
+        singular[:, None] * directions, c, singular[0], prior[fitted], links, prior_weight,
+        tolerance, max_steps)
     implausible = _implausible(consistent, prior[fitted], links, base.identifiable)
     if implausible:
         warnings.warn("physically implausible estimates: " + "; ".join(
             f"{link}: {why}" for link, why in implausible.items()) + ". Fix what the data "
             "cannot determine (leave the link out with links=[...], or excite the joints that "
             "move it) or give a closer prior.", ImplausibleEstimateWarning, stacklevel=2)
+    rms = lambda x: float(jnp.sqrt(jnp.mean((a @ x - b) ** 2)))  # noqa: E731
     return InertialFit(
-        params=params,
-        inertial_parameters=estimate,
+        params=_with_estimates(tree, p, fitted, consistent),
+        inertial_parameters=prior.at[fitted].set(consistent),
         least_squares=jnp.zeros_like(prior).at[fitted].set(least_squares.reshape(-1, 10)),
         links=tuple(links),
         rank=rank,
@@ -334,6 +296,62 @@ def fit_inertial_parameters(
         base_parameters=base,
         implausible=implausible,
     )
+
+
+def _checked_records(tree, q, u, ud, tau, weights):
+    """(q, u, u̇, τ, √w) as float arrays of matching shapes, finite, the weights broadcast to
+    τ's shape (k, m)."""
+    q, u, ud, tau = (jnp.asarray(x, dtype=float) for x in (q, u, ud, tau))
+    if tau.ndim != 2 or tau.shape[1] != tree.num_speeds:
+        raise ValueError(f"tau must have shape (k, {tree.num_speeds}) (one row of joint forces "
+                         f"per sample), got {tau.shape}.")
+    k, m = tau.shape
+    for name, x, width in (("q", q, tree.num_coordinates), ("u", u, m), ("ud", ud, m)):
+        if x.shape != (k, width):
+            raise ValueError(f"{name} must have shape ({k}, {width}) to match tau, got "
+                             f"{x.shape}.")
+        if not bool(jnp.all(jnp.isfinite(x))):
+            raise ValueError(f"{name} holds NaN or inf.")
+    if not bool(jnp.all(jnp.isfinite(tau))):
+        raise ValueError("tau holds NaN or inf.")
+    root_weights = jnp.sqrt(jnp.broadcast_to(
+        jnp.asarray(1.0 if weights is None else weights, dtype=float), (k, m)))
+    if not bool(jnp.all(jnp.isfinite(root_weights))):
+        raise ValueError("weights must be finite and non-negative.")
+    return q, u, ud, tau, root_weights
+
+
+def _consistent(r_matrix, c, largest, prior, links, prior_weight, tolerance, max_steps):
+    """The consistent estimate π (L, 10) of the fitted links, minimising ½ ‖R π − c‖² plus
+    the weighted log-det divergences from the prior's pseudo-inertias (`_objective`), by
+    Newton's method from the prior; with whether it converged and its steps."""
+    # A prior whose pseudo-inertia is singular (a massless link) is nudged inside the cone.
+    pseudo = jax.vmap(_pseudo_inertia)(prior)
+    nudge = 1e-9 * jnp.max(jnp.trace(pseudo, axis1=1, axis2=2)) * jnp.eye(4, dtype=c.dtype)[None]
+    inside = np.linalg.eigvalsh(np.asarray(pseudo + nudge))[:, 0] > 0
+    if not np.all(inside):
+        raise ValueError(f"the prior of links {[links[i] for i in np.nonzero(~inside)[0]]} is "
+                         "not a rigid body (its pseudo-inertia is not positive semi-definite): "
+                         "give physically consistent prior masses, centres of mass and "
+                         "inertias.")
+    start = pseudo + nudge
+    weight = prior_weight * largest ** 2 * jnp.sum(start**2, axis=(1, 2))
+    problem = (r_matrix, c, jnp.linalg.inv(start), weight, r_matrix.T @ r_matrix)
+    consistent, converged, num_steps = _newton(
+        problem, jax.vmap(_from_pseudo_inertia)(start).ravel(), tolerance, max_steps)
+    return consistent.reshape(-1, 10), converged, num_steps
+
+
+def _with_estimates(tree, p, fitted, estimates):
+    """A copy of `p` with each fitted link's mass, centre of mass and central inertia taken
+    from its estimate π."""
+    params = jax.tree_util.tree_map(lambda x: x, p)  # a copy: p itself stays the prior
+    for index, pi in zip(fitted, estimates):
+        link = tree.links[index]
+        for key, value in zip(("mass", "com", "inertia"), _physical(pi)):
+            parameter = getattr(link, key)
+            params[parameter.link] = {**params[parameter.link], parameter.key: value}
+    return params
 
 
 def _implausible(estimate, prior, links, identifiable) -> dict:
