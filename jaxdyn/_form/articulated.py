@@ -1,6 +1,6 @@
 """Featherstone's articulated-body algorithm: forward dynamics of a tree in O(N)."""
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -194,20 +194,20 @@ def _kinematics_in_ground_axes(tree, t, q, u, p, subspaces, dtype):
     return None, subspaces, joint_velocity, velocity, inertias, (rotation, origin)
 
 
-def articulated_body_algorithm(tree, t, q, u, p, applied=None):
-    """(u̇, singular, nonfinite): the accelerations of `tree`, NaN where some D_i is singular
-    (a link whose joint moves nothing with inertia) or the forces are not finite. `applied`:
-    further generalized forces along the speeds (control inputs B r), added to the joint
-    forces.
+class _JointColumns(NamedTuple):
+    """Which speeds the recursions' columns carry, fixed by the tree (`_joint_columns`)."""
 
-    Trees taken link by link (straight-line code) work in each link's own axes; trees whose
-    recursions run as a scan over the tree's levels in ground axes, where what a link passes
-    to its parent needs no change of axes and each level's step is a few 6-vector and 6 × 6
-    operations (measured: G1 14.3 → 12.6 µs per state in a batch, Talos 26.3 → 20.3; the
-    Panda arm 2.1 µs in its own axes, 2.7 in ground axes). The links before the scan
-    (`scan_head`: a floating base) carry their own joint's columns; the scanned links the
-    widest of theirs, narrower joints' columns padded (zero, with a unit pivot)."""
-    dtype = q.dtype
+    head: int  # the links before the scan (`scan_head`), each in its own joint's columns
+    width: int  # the scanned links' columns: the widest of their joints'
+    starts: np.ndarray  # link i's speeds are starts[i] … starts[i + 1] − 1
+    speed_of: np.ndarray  # (N − head, width): each scanned column's speed
+    padded: np.ndarray  # (N − head, width): 1 in the columns beyond a narrower joint's
+    subspaces: np.ndarray  # (N, 6, ·): the motion subspaces S_i, zero in columns they lack
+
+
+def _joint_columns(tree):
+    """The `_JointColumns` of `tree`: the links before the scan take their own joint's
+    columns, the scanned links `width` each, a narrower joint's padded (no speed, S zero)."""
     n, head = len(tree.links), tree.scan_head()
     width = max([1] + [link.joint.nv for link in tree.links[head:]])
     starts = np.cumsum([0] + [link.joint.nv for link in tree.links])
@@ -221,14 +221,19 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
         if i >= head:
             speed_of[i - head, :nv] = np.arange(starts[i], starts[i] + nv)
             padded[i - head, :nv] = 0.0
+    return _JointColumns(head, width, starts, speed_of, padded, link_subspaces)
 
-    # Joint forces along the speeds: forces, dampers, and every potential but gravity.
-    tau = newton_euler_joint_forces(tree, t, q, u, p)
-    if applied is not None:
-        tau = tau + applied
 
-    subspace = jnp.asarray(link_subspaces, dtype)
-    if head < n:
+def _velocities_and_bias_forces(tree, t, q, u, p, subspace, dtype, *, ground_axes):
+    """Pass 1, outwards: the links' velocities v_i = X_i v_λ(i) + S_i u_i (in ground axes
+    where `ground_axes`, else in each link's own), and from them
+
+        c_i = v_i ×ₘ S_i u_i,   p_i = v_i ×* I_i v_i − f_i,
+
+    the velocity-product accelerations and the bias forces, f_i the loads on link i.
+    Returns (X, S, c, I, p): the motion transforms X_i (None in ground axes, where every X_i
+    is the identity), the subspaces S_i, and c_i, the spatial inertias I_i and p_i, stacked."""
+    if ground_axes:
         transforms, subspaces, joint_velocity, velocity, inertias, pose = \
             _kinematics_in_ground_axes(tree, t, q, u, p, subspace, dtype)
     else:
@@ -250,8 +255,40 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
             moments = spatial.matvec(rotation, moments) + spatial.cross(origin, forces)
         b_moment, b_force = b_moment - moments, b_force - forces
     bias = jnp.concatenate([b_moment, b_force], -1)
+    return transforms, subspaces, bias_acceleration, inertia6, bias
 
-    # 1. articulated inertias inwards: I^A = I + Σ children's I^a, p^A likewise
+
+def _recursion_inputs(tree, columns, tau, subspaces, bias_acceleration, inertia6, bias,
+                      in_link_axes, dtype):
+    """What each link brings to the inward pass, (I_i, p_i, S_i, pinned, τ_i, c_i[, X_i]):
+    `own(i)` for a link before the scan, with its own joint's columns, and `rest` for the
+    scanned links, stacked, in `width` columns each: padded columns have S zero, a unit
+    pivot (`pinned` 1) and τ zero. The outward pass takes S_i from them again."""
+    head, width, starts, speed_of, padded = columns[:5]
+
+    def own(i):  # the data of a link before the scan: its own joint's columns
+        nv = tree.links[i].joint.nv
+        return (inertia6[i], bias[i], subspaces[i, :, :nv], np.zeros(nv),
+                tau[starts[i]:starts[i + 1]], bias_acceleration[i],
+                *(x[i] for x in in_link_axes))
+
+    rest = (inertia6[head:], bias[head:], subspaces[head:, :, :width], padded,
+            jnp.concatenate([tau, jnp.zeros(1, dtype)])[speed_of], bias_acceleration[head:],
+            *(x[head:] for x in in_link_axes))
+    return own, rest
+
+
+def _articulated_inertias(tree, head, own, rest, dtype):
+    """Pass 2, inwards: the articulated-body inertias and bias forces, from the leaves,
+
+        I^A_i = I_i + Σ_j X_jᵀ I^a_j X_j,   p^A_i = p_i + Σ_j X_jᵀ p^a_j   (j: i's children),
+        U_i = I^A_i S_i,   D_i = S_iᵀ U_i,   τ'_i = τ_i − S_iᵀ p^A_i,
+        I^a_i = I^A_i − U_i D_i⁻¹ U_iᵀ,   p^a_i = p^A_i + I^a_i c_i + U_i D_i⁻¹ τ'_i,
+
+    D_i factored by `ldl`. Returns (U_i D_i⁻¹, D_i⁻¹ τ'_i, failed) of the links before the
+    scan (a list, from `own`) and of the scanned links (stacked, or None), `failed` where a
+    pivot of D_i other than a padded column's fails (`ldl`: near zero or not finite)."""
+
     def inwards(accumulated, link):
         inertia_c, bias_c = accumulated
         own_inertia, own_bias, s, pinned, torque, c, *x = link
@@ -274,23 +311,22 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
         failed = jnp.any(failed_pivots & (pinned == 0))  # padded columns never fail
         return (d_inv_ut, d_inv_residual, failed), (reduced, reduced_bias)
 
-    in_link_axes = () if transforms is None else (transforms,)
-
-    def first(i):  # the data of a link before the scan: its own joint's columns
-        nv = tree.links[i].joint.nv
-        return (inertia6[i], bias[i], subspaces[i, :, :nv], np.zeros(nv),
-                tau[starts[i]:starts[i + 1]], bias_acceleration[i],
-                *(x[i] for x in in_link_axes))
-
-    rest = (inertia6[head:], bias[head:], subspaces[head:, :, :width], padded,
-            jnp.concatenate([tau, jnp.zeros(1, dtype)])[speed_of], bias_acceleration[head:],
-            *(x[head:] for x in in_link_axes))
     zero = (jnp.zeros((6, 6), dtype), jnp.zeros(6, dtype))
-    head_out, rest_out, _ = tree.backward_split(inwards, zero, [first(i) for i in range(head)],
-                                                rest if head < n else None)
+    head_out, rest_out, _ = tree.backward_split(inwards, zero, [own(i) for i in range(head)],
+                                                rest if head < len(tree.links) else None)
+    return head_out, rest_out
 
-    # 2. accelerations outwards, from the world's (0, −g): a_i = a'_i + S_i u̇_i with
-    # a'_i = X_i a_λ(i) + c_i and u̇_i = D_i⁻¹ τ'_i − (U_i D_i⁻¹)ᵀ a'_i
+
+def _accelerations_outwards(tree, p, columns, bias_acceleration, in_link_axes, own, rest,
+                            head_out, rest_out, dtype):
+    """Pass 3, outwards from the world's acceleration a_0 = (0, −g) (gravity as an
+    acceleration of the base):
+
+        a'_i = X_i a_λ(i) + c_i,   u̇_i = D_i⁻¹ τ'_i − (U_i D_i⁻¹)ᵀ a'_i,   a_i = a'_i + S_i u̇_i.
+
+    Returns u̇ (m,), the scanned links' padded columns dropped."""
+    head, padded, n = columns.head, columns.padded, len(tree.links)
+
     def accelerations_out(parent, link):
         c, s, ud_inv, d_inv_residual, _, *x = link
         before = (_matvec6(x[0], parent) if x else parent) + c
@@ -301,15 +337,48 @@ def articulated_body_algorithm(tree, t, q, u, p, applied=None):
     world = jnp.concatenate([jnp.zeros(3, dtype), -gravity])
     pieces, rest_udots = tree.forward_split(
         accelerations_out, world,
-        [(bias_acceleration[i], first(i)[2], *head_out[i], *(x[i] for x in in_link_axes))
+        [(bias_acceleration[i], own(i)[2], *head_out[i], *(x[i] for x in in_link_axes))
          for i in range(head)],
         (bias_acceleration[head:], rest[2], *rest_out, *(x[head:] for x in in_link_axes))
         if head < n else None)
-    failures = [failed for _, _, failed in head_out]
     if head < n:
         pieces.append(rest_udots[padded == 0])  # the scanned links', padded columns dropped
+    return jnp.concatenate(pieces) if pieces else jnp.zeros(0, dtype)
+
+
+def articulated_body_algorithm(tree, t, q, u, p, applied=None):
+    """(u̇, singular, nonfinite): the accelerations of `tree`, NaN where some D_i is singular
+    (a link whose joint moves nothing with inertia) or the forces are not finite. `applied`:
+    further generalized forces along the speeds (control inputs B r), added to the joint
+    forces.
+
+    Trees taken link by link (straight-line code) work in each link's own axes; trees whose
+    recursions run as a scan over the tree's levels in ground axes, where what a link passes
+    to its parent needs no change of axes and each level's step is a few 6-vector and 6 × 6
+    operations (measured: G1 14.3 → 12.6 µs per state in a batch, Talos 26.3 → 20.3; the
+    Panda arm 2.1 µs in its own axes, 2.7 in ground axes). The links before the scan
+    (`scan_head`: a floating base) carry their own joint's columns; the scanned links the
+    widest of theirs, narrower joints' columns padded (zero, with a unit pivot)."""
+    dtype = q.dtype
+    columns = _joint_columns(tree)
+    head, n = columns.head, len(tree.links)
+
+    # Joint forces along the speeds: forces, dampers, and every potential but gravity.
+    tau = newton_euler_joint_forces(tree, t, q, u, p)
+    if applied is not None:
+        tau = tau + applied
+
+    transforms, subspaces, bias_acceleration, inertia6, bias = _velocities_and_bias_forces(
+        tree, t, q, u, p, jnp.asarray(columns.subspaces, dtype), dtype, ground_axes=head < n)
+    in_link_axes = () if transforms is None else (transforms,)
+    own, rest = _recursion_inputs(tree, columns, tau, subspaces, bias_acceleration, inertia6,
+                                  bias, in_link_axes, dtype)
+    head_out, rest_out = _articulated_inertias(tree, head, own, rest, dtype)
+    accelerations = _accelerations_outwards(tree, p, columns, bias_acceleration, in_link_axes,
+                                            own, rest, head_out, rest_out, dtype)
+    failures = [failed for _, _, failed in head_out]
+    if head < n:
         failures.append(rest_out[2])
-    accelerations = jnp.concatenate(pieces) if pieces else jnp.zeros(0, dtype)
     singular = jnp.any(jnp.stack([jnp.any(f) for f in failures]))
     nonfinite = ~jnp.all(jnp.isfinite(tau)) | ~jnp.all(jnp.isfinite(bias))
     return jnp.where(singular | nonfinite, jnp.nan, accelerations), singular, nonfinite
