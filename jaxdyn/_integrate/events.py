@@ -9,6 +9,9 @@ implicit function theorem on g(t*, y(t*)) = 0, then the jump's Jacobian, which t
 the saltation matrix of the event (Aizerman and Gantmacher 1958) for the discrete solve.
 """
 
+import dataclasses
+from typing import Any
+
 import diffrax
 import equinox as eqx
 import jax
@@ -221,130 +224,192 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
     """Segments of `diffrax.diffeqsolve` between events, at most `max_events` events.
 
     `args` is the vector field's (dynamics, p, factorisation, layout); `saveat` is
-    `simulate`'s (the requested states, then the last state). Returns a `HybridSolution`."""
-    dynamics, p, factorisation, layout = args
+    `simulate`'s (the requested states, then the last state). Returns a `HybridSolution`:
+    the scan over max_events + 1 segments (`_Segments.segment`), the last one to reach t1
+    or to meet the event past the budget."""
+    dynamics, p, _, layout = args
     q0, u0 = layout.split(y0)
     # Strongly typed times (a batch passes weakly typed ones): the event's root find is traced
     # once with the segment's times and must be called with the same types.
     t0, t1 = (jnp.asarray(t, y0.dtype) for t in (t0, t1))
     counts = _guard_counts(events, dynamics, t0, q0, u0, p)
     hybrid = _Hybrid(events, tuple(counts))
-    total = sum(counts)
-    owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
-    owner = jnp.asarray(owner_list, jnp.int32)
-    requested = saveat.subs[0]
-    dtype = y0.dtype
-    tiny = jnp.finfo(dtype).tiny
+    watch = _Watch(hybrid, layout, y0.dtype)
+    no_guards = jnp.zeros((watch.total,), bool)
+    references0 = hybrid.references(dynamics, t0, q0, u0, p, no_guards)
+    segments = _Segments(
+        args=args, watch=watch, solver=solver, t1=t1, dt0=dt0, controller=controller,
+        adjoint=adjoint, max_steps=max_steps, max_events=max_events,
+        requested=saveat.subs[0], rests=can_rest(events, dynamics, t0, q0, u0, p),
+        no_guards=no_guards, dtype=y0.dtype)
+    carry0 = segments.start(t0, y0, references0)
+    carry, records = jax.lax.scan(segments.segment, carry0, jnp.arange(max_events + 1))
+    return _hybrid_solution(carry, records, segments.requested.ts, max_events)
 
-    directions = [DIRECTIONS[event.direction] for event, c in zip(events, counts)
-                  for _ in range(c)]
-    falling = np.array([d is False for d in directions])
-    rising = np.array([d is True for d in directions])
 
-    def guard_values(t, y, args, sided=False):
-        """The guards (K,), as the segment that starts at t_start sees them."""
+class _Watch:
+    """The guards of a hybrid solve as its segments watch them for a crossing (built at trace
+    time): which event each guard belongs to, each guard's value as the segment that starts
+    at t_start sees it, which guards can fire from there, the `diffrax.Event` whose zero
+    crossing ends a segment, and which guard that crossing was."""
+
+    def __init__(self, hybrid, layout, dtype):
+        self.hybrid, self.layout = hybrid, layout
+        counts = hybrid.counts
+        self.total = sum(counts)
+        self.owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
+        self.owner = jnp.asarray(self.owner_list, jnp.int32)
+        self.tiny = jnp.finfo(dtype).tiny
+        directions = [DIRECTIONS[event.direction] for event, c in zip(hybrid.events, counts)
+                      for _ in range(c)]
+        self.falling = np.array([d is False for d in directions])
+        self.rising = np.array([d is True for d in directions])
+        # The guards that cross one way are watched as one function, the least of them (each
+        # taken so that it falls through zero): the first crossing of any is the first zero of
+        # their least, located by one root find, and the field is written into the program once
+        # rather than once per guard. A guard that cannot fire from where its segment starts
+        # (on the far side of zero, or at zero after firing and leaving it that way) enters as
+        # its absolute value, which touches zero where the guard crosses back without falling
+        # through it. Guards that fire both ways are watched one by one.
+        groups = [(np.flatnonzero(self.falling), 1.0), (np.flatnonzero(self.rising), -1.0)]
+        self.groups = [(index, sign) for index, sign in groups if index.size]
+        self.either = [i for i, d in enumerate(directions) if d is None]
+        self.towards = jnp.asarray(np.where(self.rising, -1.0, 1.0), dtype)  # (falling taken as +)
+        self.event = self._crossing_event(dtype)
+
+    def values(self, t, y, args, sided=False):
+        """The guards g (K,) at (t, y), as the segment that starts at t_start sees them: with
+        `sided`, those that just fired are put on the side the motion leaves them towards."""
         dynamics, p, factorisation, _, (t_start, leaving, resting, references, _) = args
-        q, u = layout.split(y)
-        g = hybrid.values(dynamics, t, q, u, p, factorisation, resting, references)
+        q, u = self.layout.split(y)
+        g = self.hybrid.values(dynamics, t, q, u, p, factorisation, resting, references)
         at_start = (t == t_start) & (leaving == 0)
         # A guard at zero when a segment starts that did not just fire (a ball released on
         # the floor) counts as just before its crossing, so that it cannot be passed unseen.
-        g = jnp.where(at_start & falling & (g <= 0) & (g >= -AT_ZERO), tiny, g)
-        g = jnp.where(at_start & rising & (g >= 0) & (g <= AT_ZERO), -tiny, g)
+        g = jnp.where(at_start & self.falling & (g <= 0) & (g >= -AT_ZERO), self.tiny, g)
+        g = jnp.where(at_start & self.rising & (g >= 0) & (g <= AT_ZERO), -self.tiny, g)
         if not sided:
             return g
         # At a restart the guards that just fired sit at zero: their side is the one the
         # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
         # handled is not found again.
-        side = leaving * jnp.maximum(jnp.abs(g), tiny)
+        side = leaving * jnp.maximum(jnp.abs(g), self.tiny)
         return jnp.where((t == t_start) & (leaving != 0), side, g)
 
-    # The guards that cross one way are watched as one function, the least of them (each
-    # taken so that it falls through zero): the first crossing of any is the first zero of
-    # their least, located by one root find, and the field is written into the program once
-    # rather than once per guard. A guard that cannot fire from where its segment starts
-    # (on the far side of zero, or at zero after firing and leaving it that way) enters as
-    # its absolute value, which touches zero where the guard crosses back without falling
-    # through it. Guards that fire both ways are watched one by one.
-    groups = [(np.flatnonzero(falling), 1.0), (np.flatnonzero(rising), -1.0)]
-    groups = [(index, sign) for index, sign in groups if index.size]
-    either = [i for i, d in enumerate(directions) if d is None]
-    towards = jnp.asarray(np.where(rising, -1.0, 1.0), dtype)  # (falling taken as +)
+    def _crossing_event(self, dtype):
+        """The `diffrax.Event` that stops a segment at the first zero crossing of a guard: the
+        least of each one-way group, each guard of either direction alone, its crossing
+        located by Newton's method on the step's dense interpolant."""
 
-    def watched(index, sign, g, armed):
-        value = sign * g[index]
-        return jnp.where(armed[index], value, jnp.abs(value))
+        def least(index, sign):
+            """The least of the one-way guards `index`, each falling through zero as it fires."""
+            def cond_fn(t, y, args, **kwargs):
+                armed = args[-1][-1]
+                return jnp.min(_watched(index, sign, self.values(t, y, args, sided=True),
+                                        armed))
+            return cond_fn
 
-    def least(index, sign):
-        def cond_fn(t, y, args, **kwargs):
-            armed = args[-1][-1]
-            return jnp.min(watched(index, sign, guard_values(t, y, args, sided=True),
-                                   armed))
-        return cond_fn
+        def single(index):
+            """Guard `index` alone (it fires either way)."""
+            def cond_fn(t, y, args, **kwargs):
+                return self.values(t, y, args, sided=True)[index]
+            return cond_fn
 
-    def single(index):
-        def cond_fn(t, y, args, **kwargs):
-            return guard_values(t, y, args, sided=True)[index]
-        return cond_fn
+        root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
+                                  atol=1e-12 if dtype == jnp.float64 else 1e-6)
+        return diffrax.Event([least(index, sign) for index, sign in self.groups]
+                             + [single(i) for i in self.either], root_finder,
+                             [False] * len(self.groups) + [None] * len(self.either))
 
-    def armed_at(t, y, args):
+    def armed(self, t, y, args):
         """Which guards start a segment where they can fire: on the side they fall from, or
         at zero just after firing and moving to that side."""
         leaving = args[-1][1]
-        g = guard_values(t, y, args)
+        g = self.values(t, y, args)
         just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
-        return jnp.where(just_fired, towards * leaving > 0, towards * g > 0)
+        return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
 
-    def which_fired(mask, t, y, args):
-        """(K,) the guards whose crossing ended the segment, from the event's mask."""
-        g = guard_values(t, y, args)
+    def fired(self, mask, t, y, args):
+        """(K,) the guards whose crossing ended the segment, from the event's mask: in a
+        one-way group, the least of its guards."""
+        g = self.values(t, y, args)
         armed = args[-1][-1]
-        fired = jnp.zeros((total,), bool)
-        for (index, sign), hit in zip(groups, mask[:len(groups)]):
-            first = jnp.asarray(index)[jnp.argmin(watched(index, sign, g, armed))]
+        fired = jnp.zeros((self.total,), bool)
+        for (index, sign), hit in zip(self.groups, mask[:len(self.groups)]):
+            first = jnp.asarray(index)[jnp.argmin(_watched(index, sign, g, armed))]
             fired = fired.at[first].set(hit)
-        for i, hit in zip(either, mask[len(groups):]):
+        for i, hit in zip(self.either, mask[len(self.groups):]):
             fired = fired.at[i].set(hit)
         return fired
 
-    root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
-                              atol=1e-12 if dtype == jnp.float64 else 1e-6)
-    event = diffrax.Event([least(index, sign) for index, sign in groups]
-                          + [single(i) for i in either], root_finder,
-                          [False] * len(groups) + [None] * len(either))
-    ts_requested = requested.ts
-    no_guards = jnp.zeros((total,), bool)
-    references0 = hybrid.references(dynamics, t0, q0, u0, p, no_guards)
-    rests = can_rest(events, dynamics, t0, q0, u0, p)
 
-    def observe(t, y, args):
+def _watched(index, sign, g, armed):
+    """The guards `index` of one group, each taken so that it falls through zero where it
+    fires (sign g), and as |sign g| where it cannot fire from where its segment starts."""
+    value = sign * g[index]
+    return jnp.where(armed[index], value, jnp.abs(value))
+
+
+# (hashed by identity: its bound `observe` is a static part of each segment's diffeqsolve)
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Segments:
+    """The segments of a hybrid solve (trace time): each the flow from the last event to the
+    first zero crossing of a guard, the jump of the event that fired and the restart after
+    it (`segment`, the body of the solve's scan)."""
+
+    args: tuple  # the vector field's (dynamics, p, factorisation, layout)
+    watch: _Watch
+    solver: diffrax.AbstractSolver
+    t1: Array
+    dt0: Any  # None or the first step
+    controller: diffrax.AbstractStepSizeController
+    adjoint: diffrax.AbstractAdjoint
+    max_steps: int | None
+    max_events: int
+    requested: diffrax.SubSaveAt  # simulate's requested states
+    rests: bool  # whether some guard can come to rest (the normal forces are then saved)
+    no_guards: Bool[Array, " K"]
+    dtype: np.dtype
+
+    def observe(self, t, y, args):
         """The requested quantities, and the normal forces λ of the contacts held at rest."""
-        seen = requested.fn(t, y, args)
-        if not rests:
+        seen = self.requested.fn(t, y, args)
+        if not self.rests:
             return seen, None
         dynamics, p, factorisation, _, (_, _, resting, references, _) = args
-        q, u = layout.split(y)
-        return seen, hybrid.held_forces(dynamics, t, q, u, p, factorisation, resting,
-                                        references)
+        q, u = self.watch.layout.split(y)
+        return seen, self.watch.hybrid.held_forces(dynamics, t, q, u, p, factorisation,
+                                                   resting, references)
 
-    def segment(carry, index):
+    def start(self, t0, y0, references0):
+        """The scan's carry before the first segment: the solve at (t0, y0), no guard resting
+        or just fired, the saves NaN and no steps taken."""
+        ts_requested = self.requested.ts
+        total = self.watch.total
+        start_args = (*self.args, (t0, jnp.zeros((total,), self.dtype), self.no_guards,
+                                   references0, self.no_guards))
+        if ts_requested is None:
+            saved0 = jax.eval_shape(lambda: self.observe(t0, y0, start_args))
+        else:
+            saved0 = jax.eval_shape(lambda: jax.vmap(
+                lambda t: self.observe(t, y0, start_args))(ts_requested))
+        saved0 = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), saved0)
+        if ts_requested is None:
+            saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
+        zero = jnp.zeros((), jnp.int32)
+        return (t0, y0, jnp.zeros((total,), self.dtype), self.no_guards, references0,
+                jnp.array(False), saved0,
+                (t0, y0, jnp.array(False)), RESULTS.successful, (zero, zero, zero), zero)
+
+    def segment(self, carry, index):
+        """Segment `index` (the scan's body): the flow to the first crossing, the event's
+        jump and the restart after it; the event's row of the `EventRecord`. Once the solve is
+        done (no event before t1, a stop, a failure, the budget spent) a segment changes
+        nothing."""
         (t_start, y_start, leaving, resting, references, done, saved, last, result, steps,
          count) = carry
-        t_from = jnp.where(done, t1, t_start)
-        if ts_requested is None:
-            sub = diffrax.SubSaveAt(t1=True, fn=observe)
-        else:
-            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, t1), fn=observe)
-        segment_args = (*args, (t_from, leaving, resting, references, no_guards))
-        segment_args = (*args, (t_from, leaving, resting, references,
-                                armed_at(t_from, y_start, segment_args)))
-        solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(hybrid.field), solver, t_from, t1, dt0, y_start,
-            args=segment_args,
-            saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
-                                  controller_state=True),
-            stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps,
-            event=event, throw=False)
+        t_from, segment_args, solution = self.flow(t_start, y_start, leaving, resting,
+                                                   references, done)
         # (saved as asked: the states and times, the controller's state, the event mask)
         assert solution.ys is not None and solution.ts is not None
         assert solution.event_mask is not None and solution.controller_state is not None
@@ -352,95 +417,162 @@ def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max
         (requested_ys, last_y) = solution.ys
         t_end = solution.ts[1][0]
         y_end = last_y[0]
-        fired = which_fired(solution.event_mask, t_end, y_end, segment_args) & ran
+        fired = self.watch.fired(solution.event_mask, t_end, y_end, segment_args) & ran
         happened = jnp.any(fired)
-        # The requested states this segment covers: (t_start, t_end], and t0 itself.
+        saved = _keep_covered(saved, requested_ys, self.requested.ts, t_from, t_end, index,
+                              ran)
+        before, after = self.jump(t_end, y_end, fired, happened, resting, references, index)
+        q_plus, u_plus, _, resting_plus, _, terminal = after
+        y_next = self.watch.layout.join(q_plus, u_plus)
+        references_next, leaving_next = self.restart(t_end, q_plus, u_plus, fired, resting,
+                                                     resting_plus)
+        failed, exhausted, new_result = _outcome(solution, result, ran, happened, terminal,
+                                                 index, self.max_events)
+        stalled = solution.controller_state[-1]
+        last, steps = _tally(last, steps, ran, (t_end, y_end, stalled), solution.stats)
+        record = _record(happened, t_end, before, after)
+        count = count + (happened & (index < self.max_events)).astype(count.dtype)
+        done = done | ~happened | terminal | failed | exhausted
+        carry = (t_end, y_next, leaving_next, resting_plus, references_next, done, saved, last,
+                 new_result, steps, count)
+        return carry, record
+
+    def flow(self, t_start, y_start, leaving, resting, references, done):
+        """The flow of a segment: `diffrax.diffeqsolve` from the last event to t1 (from t1
+        itself, an empty solve, once the solve is done), stopped at the first zero crossing of
+        a guard armed at its start. Returns the segment's start, its args and its solution."""
+        t_from = jnp.where(done, self.t1, t_start)
+        ts_requested = self.requested.ts
         if ts_requested is None:
-            saved = jax.tree_util.tree_map(lambda new, old: jnp.where(ran, new, old),
-                                           requested_ys, saved)
+            sub = diffrax.SubSaveAt(t1=True, fn=self.observe)
         else:
-            covered = ((ts_requested > t_from) | ((index == 0) & (ts_requested >= t_from))) & (
-                ts_requested <= t_end) & ran
-            saved = jax.tree_util.tree_map(
-                lambda new, old: jnp.where(covered.reshape((-1,) + (1,) * (new.ndim - 1)),
-                                           new, old), requested_ys, saved)
-        # The jump of the event whose guard fired (one event object fires at a time).
+            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, self.t1),
+                                    fn=self.observe)
+        segment_args = (*self.args, (t_from, leaving, resting, references, self.no_guards))
+        segment_args = (*self.args, (t_from, leaving, resting, references,
+                                     self.watch.armed(t_from, y_start, segment_args)))
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(self.watch.hybrid.field), self.solver, t_from, self.t1, self.dt0,
+            y_start, args=segment_args,
+            saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
+                                  controller_state=True),
+            stepsize_controller=self.controller, adjoint=self.adjoint,
+            max_steps=self.max_steps, event=self.watch.event, throw=False)
+        return t_from, segment_args, solution
+
+    def jump(self, t_end, y_end, fired, happened, resting, references, index):
+        """The event that ended a segment: the state (q⁻, u⁻) just before it, the guard that
+        fired and all guards' rates ġ⁻ there; then the jump (q⁺, u⁺) = Δ(q⁻, u⁻) of the event
+        that guard belongs to (one event object fires at a time), its impulses Λ, the guards
+        resting after it, whether it applies and whether the event stops the motion. No jump
+        applies without an event, at a stop, or past the budget: the state stays."""
+        dynamics, p, factorisation, layout = self.args
         q, u = layout.split(y_end)
         which = jnp.argmax(fired)
-        fired_owner = owner[which]
-        guard_rates = hybrid.rates(dynamics, t_end, q, u, p, factorisation, resting,
-                                   references)
-
-        def jump(i):
-            mine = np.array([k for k, o in enumerate(owner_list) if o == i])
-
-            def apply():
-                q_plus, u_plus, impulses, resting_plus = events[i].jump(
-                    dynamics, t_end, q, u, p, fired[mine], resting[mine])
-                return (q_plus, u_plus, jnp.zeros((total,), dtype).at[mine].set(impulses),
-                        resting.at[mine].set(resting_plus))
-            return apply
-
+        fired_owner = self.watch.owner[which]
+        guard_rates = self.watch.hybrid.rates(dynamics, t_end, q, u, p, factorisation,
+                                              resting, references)
+        events = self.watch.hybrid.events
         terminal = jnp.asarray([e.terminal for e in events])[fired_owner]
         q_plus, u_plus, impulses, resting_plus = jax.lax.switch(
-            fired_owner, [jump(i) for i in range(len(events))])
-        apply_jump = happened & ~terminal & (index < max_events)
+            fired_owner, [self._jump_branch(i, t_end, q, u, fired, resting)
+                          for i in range(len(events))])
+        apply_jump = happened & ~terminal & (index < self.max_events)
         q_plus = jnp.where(apply_jump, q_plus, q)
         u_plus = jnp.where(apply_jump, u_plus, u)
         impulses = jnp.where(apply_jump, impulses, 0.0)
         resting_plus = jnp.where(apply_jump, resting_plus, resting)
-        y_next = layout.join(q_plus, u_plus)
+        return ((q, u, which, guard_rates),
+                (q_plus, u_plus, impulses, resting_plus, apply_jump, terminal))
+
+    def _jump_branch(self, i, t, q, u, fired, resting):
+        """Event i's jump, a branch of the switch over the event that fired: its guards' rows
+        of `fired` and `resting` in; (q⁺, u⁺), its impulses and its resting guards set in
+        place among all the guards out."""
+        mine = np.array([k for k, o in enumerate(self.watch.owner_list) if o == i])
+        dynamics, p, _, _ = self.args
+
+        def apply():
+            q_plus, u_plus, impulses, resting_plus = self.watch.hybrid.events[i].jump(
+                dynamics, t, q, u, p, fired[mine], resting[mine])
+            return (q_plus, u_plus,
+                    jnp.zeros((self.watch.total,), self.dtype).at[mine].set(impulses),
+                    resting.at[mine].set(resting_plus))
+        return apply
+
+    def restart(self, t_end, q_plus, u_plus, fired, resting, resting_plus):
+        """What the next segment starts from after the jump: what each event remembers of
+        (t, q⁺, u⁺), and the side each fired guard leaves zero towards."""
+        dynamics, p, factorisation, _ = self.args
+        hybrid = self.watch.hybrid
         # ġ just after the jump: which side each fired guard leaves towards (none for a guard
         # that came to rest or was released: it changes meaning there).
         references_next = hybrid.references(dynamics, t_end, q_plus, u_plus, p, resting_plus)
         rates_after = hybrid.rates(dynamics, t_end, q_plus, u_plus, p, factorisation,
                                    resting_plus, references_next)
         same = resting_plus == resting
-        leaving_next = jnp.where(fired & same, jnp.sign(rates_after), 0.0).astype(dtype)
+        leaving_next = jnp.where(fired & same, jnp.sign(rates_after), 0.0).astype(self.dtype)
+        return references_next, leaving_next
 
-        segment_result = diffrax.RESULTS.where(
-            solution.result == diffrax.RESULTS.event_occurred, diffrax.RESULTS.successful,
-            solution.result)
-        failed = ran & (segment_result != diffrax.RESULTS.successful)
-        exhausted = ran & happened & ~terminal & (index >= max_events)
-        new_result = RESULTS.where(failed, RESULTS.promote(segment_result), result)
-        new_result = RESULTS.where(exhausted, RESULTS.max_events_reached, new_result)
-        stalled = solution.controller_state[-1]
-        last = jax.tree_util.tree_map(
-            lambda new, old: jnp.where(ran, new, old),
-            (t_end, y_end, stalled), last)
-        steps = jax.tree_util.tree_map(
-            lambda total, s: total + jnp.where(ran, s, 0), steps,
-            (solution.stats["num_steps"], solution.stats["num_accepted_steps"],
-             solution.stats["num_rejected_steps"]))
-        record = (jnp.where(happened, t_end, jnp.nan),
-                  jnp.where(happened, which, -1),
-                  jnp.where(happened, q, jnp.nan), jnp.where(happened, u, jnp.nan),
-                  jnp.where(apply_jump, q_plus, jnp.nan),
-                  jnp.where(apply_jump, u_plus, jnp.nan),
-                  jnp.where(happened, guard_rates, jnp.nan),
-                  jnp.where(happened, impulses, jnp.nan),
-                  happened & resting_plus)
-        count = count + (happened & (index < max_events)).astype(count.dtype)
-        done = done | ~happened | terminal | failed | exhausted
-        carry = (t_end, y_next, leaving_next, resting_plus, references_next, done, saved, last,
-                 new_result, steps, count)
-        return carry, record
 
-    start_args = (*args, (t0, jnp.zeros((total,), dtype), no_guards, references0, no_guards))
+def _keep_covered(saved, requested_ys, ts_requested, t_from, t_end, index, ran):
+    """The requested states, those this segment covers taken from its solve."""
+    # The requested states this segment covers: (t_start, t_end], and t0 itself.
     if ts_requested is None:
-        saved0 = jax.eval_shape(lambda: observe(t0, y0, start_args))
-    else:
-        saved0 = jax.eval_shape(lambda: jax.vmap(lambda t: observe(t, y0, start_args))(
-            ts_requested))
-    saved0 = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), saved0)
-    if ts_requested is None:
-        saved0 = jax.tree_util.tree_map(lambda x: x[None], saved0)
-    zero = jnp.zeros((), jnp.int32)
-    carry0 = (t0, y0, jnp.zeros((total,), dtype), no_guards, references0, jnp.array(False),
-              saved0,
-              (t0, y0, jnp.array(False)), RESULTS.successful, (zero, zero, zero), zero)
-    carry, records = jax.lax.scan(segment, carry0, jnp.arange(max_events + 1))
+        return jax.tree_util.tree_map(lambda new, old: jnp.where(ran, new, old),
+                                      requested_ys, saved)
+    covered = ((ts_requested > t_from) | ((index == 0) & (ts_requested >= t_from))) & (
+        ts_requested <= t_end) & ran
+    return jax.tree_util.tree_map(
+        lambda new, old: jnp.where(covered.reshape((-1,) + (1,) * (new.ndim - 1)),
+                                   new, old), requested_ys, saved)
+
+
+def _outcome(solution, result, ran, happened, terminal, index, max_events):
+    """The solve's result after a segment: whether it failed (a located event is a success
+    here), whether it met an event past the budget, and the result so far."""
+    segment_result = diffrax.RESULTS.where(
+        solution.result == diffrax.RESULTS.event_occurred, diffrax.RESULTS.successful,
+        solution.result)
+    failed = ran & (segment_result != diffrax.RESULTS.successful)
+    exhausted = ran & happened & ~terminal & (index >= max_events)
+    new_result = RESULTS.where(failed, RESULTS.promote(segment_result), result)
+    new_result = RESULTS.where(exhausted, RESULTS.max_events_reached, new_result)
+    return failed, exhausted, new_result
+
+
+def _tally(last, steps, ran, now, stats):
+    """The solve's last (time, state, stall flag), `now` where the segment ran, and its step
+    counts with the segment's `stats` added."""
+    last = jax.tree_util.tree_map(
+        lambda new, old: jnp.where(ran, new, old),
+        now, last)
+    steps = jax.tree_util.tree_map(
+        lambda total, s: total + jnp.where(ran, s, 0), steps,
+        (stats["num_steps"], stats["num_accepted_steps"], stats["num_rejected_steps"]))
+    return last, steps
+
+
+def _record(happened, t_end, before, after):
+    """A segment's row of the `EventRecord`, of `_Segments.jump`'s `before` and `after`: the
+    event's time, its guard, the states before and after its jump, ġ⁻, Λ and the resting
+    guards (NaN, and -1 in the guard, where no event happened; the state after NaN where no
+    jump applied)."""
+    q, u, which, guard_rates = before
+    q_plus, u_plus, impulses, resting_plus, apply_jump, _ = after
+    return (jnp.where(happened, t_end, jnp.nan),
+            jnp.where(happened, which, -1),
+            jnp.where(happened, q, jnp.nan), jnp.where(happened, u, jnp.nan),
+            jnp.where(apply_jump, q_plus, jnp.nan),
+            jnp.where(apply_jump, u_plus, jnp.nan),
+            jnp.where(happened, guard_rates, jnp.nan),
+            jnp.where(happened, impulses, jnp.nan),
+            happened & resting_plus)
+
+
+def _hybrid_solution(carry, records, ts_requested, max_events):
+    """The `HybridSolution` of the scan's last carry and its rows of events (the row of the
+    segment past the budget left out)."""
     (*_, (saved, forces), (t_last, y_last, stalled), result, steps, count) = carry
     records = jax.tree_util.tree_map(lambda x: x[:max_events], records)
     (t_events, guard, q_minus, u_minus, q_plus, u_plus, rates, impulses, resting) = records
