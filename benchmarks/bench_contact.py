@@ -31,7 +31,7 @@ import jax
 # A large vmapped batch can wedge on jaxlib 0.10: its batched LAPACK kernels (MJX's Cholesky
 # factorisations) split their batch into tasks on XLA's intra-op thread pool and wait for
 # them, and two such kernels running at once hold every thread of a 2-core machine's pool
-# (benchmarks/README.md, "Why the 1024 runs stall"); jaxlib 0.11.2 builds that path out.
+# (benchmarks/LOG.md, "Why the 1024 runs stall"); jaxlib 0.11.2 builds that path out.
 # Dispatching synchronously keeps each row printed as soon as it is measured.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 

@@ -3,6 +3,7 @@
 Run: python benchmarks/bench_default_paths.py            (about 6 minutes on two cores)
      python benchmarks/bench_default_paths.py --quick    (fewer rounds, no 16384 batch)
      python benchmarks/bench_default_paths.py --check    (exit 1 when a ratio misses its target)
+     python benchmarks/bench_default_paths.py --record   (write results/default_paths.csv)
 
 Every row times what a user calls (un-jitted where the README calls it so, default `save` and
 `throw`) side by side in one process with its floor, and prints the ratio and its target:
@@ -54,6 +55,7 @@ from _systems import (  # noqa: E402
     elastic_T,
     elastic_V,
 )
+from _results import Recorder  # noqa: E402
 from _timing import in_loop, interleaved  # noqa: E402
 
 TOL = 1e-8
@@ -405,6 +407,8 @@ def main():
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--check", action="store_true")
     parser.add_argument("--only", default="checks,trajectories,batches,gradients,compile")
+    parser.add_argument("--record", action="store_true",
+                        help="write the figures to benchmarks/results/default_paths.csv")
     args = parser.parse_args()
     rounds = 5 if args.quick else 9
     only = set(args.only.split(","))
@@ -435,6 +439,11 @@ def main():
         large_first_calls()
     missed = [row for row in ROWS if row[2] > row[3]]
     print(f"\n{len(ROWS) - len(missed)} of {len(ROWS)} rows meet their targets.")
+    if args.record:
+        recorder = Recorder("default_paths")
+        for row, system, ratio, target in ROWS:
+            recorder.add(row, system, ratio, "×", target)
+        recorder.write()
     if args.check and missed:
         sys.exit(1)
 

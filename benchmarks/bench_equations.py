@@ -3,6 +3,7 @@ hand, derived with sympy, and formed by the naive Lagrangian-neural-network reci
 
 Run: python benchmarks/bench_equations.py            (all systems, about 10 minutes)
      python benchmarks/bench_equations.py --quick    (double and elastic pendulum only)
+     ... --record                                    (write benchmarks/results/equations.csv)
 
 Systems (benchmarks/_systems.py): double pendulum, elastic pendulum (worked example 25.2), and
 an N-link chain of rods for N = 2, 5, 10, 20, each a `jaxdyn.Lagrangian` from the T and V a
@@ -39,6 +40,7 @@ from _systems import (  # noqa: E402
     check_agreement,
     states,
 )
+from _results import Recorder  # noqa: E402
 from _timing import compile_seconds, in_loop, interleaved  # noqa: E402
 
 SYMPY = {"double pendulum": _sympy_systems.double_pendulum,
@@ -109,6 +111,7 @@ def measure(system, sympy_model):
 
 def main():
     quick = "--quick" in sys.argv
+    recorder = Recorder("equations")
     systems = [(DOUBLE_PENDULUM, SYMPY["double pendulum"]),
                (ELASTIC_PENDULUM, SYMPY["elastic pendulum"])]
     if not quick:
@@ -133,11 +136,26 @@ def main():
               f"{ratio(vm, 'sympy'):6.2f}× {ratio(vm, 'LNN'):6.2f}× | "
               f"{_time(call['hand']):>11s} {ratio(call, 'rhs'):6.2f}× "
               f"{ratio(call, 'accelerations'):6.2f}×", flush=True)
+        for label, d, key in (
+                ("in a compiled loop: accelerations(throw=False) / hand-written", loop, "rhs"),
+                ("in a compiled loop: accelerations (default) / hand-written", loop,
+                 "accelerations"),
+                ("in a compiled loop: sympy (KanesMethod) / hand-written", loop, "sympy"),
+                ("in a compiled loop: the LNN recipe / hand-written", loop, "LNN"),
+                ("vmap of 1024: accelerations(throw=False) / hand-written", vm, "rhs"),
+                ("one jitted call: accelerations(throw=False) / hand-written", call, "rhs")):
+            recorder.add(label, system.name, ratio(d, key))
+        recorder.add("in a compiled loop: mass_matrix_and_forcing / M, f by hand",
+                     system.name, ratio(r["equations"], "jaxdyn"))
     print("\ncompile (first call of a fresh jax.jit of one evaluation) and sympy derivation:")
     for system, r in rows:
         c = r["compiles"]
         print(f"{system.name:17s} hand {c['hand']:6.2f} s   jaxdyn accelerations "
               f"{c['accelerations']:6.2f} s   sympy derivation + lambdify {r['derivation']:6.2f} s")
+        recorder.add("compile: accelerations / hand-written (a fresh jax.jit)", system.name,
+                     c["accelerations"] / c["hand"])
+    if "--record" in sys.argv:
+        recorder.write()
 
 
 def _time(seconds):

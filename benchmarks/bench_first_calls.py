@@ -28,6 +28,7 @@ Run:  python benchmarks/bench_first_calls.py           (about 1 minute)
       python benchmarks/bench_first_calls.py --cache   (about 2 minutes)
       python benchmarks/bench_first_calls.py --robots  (adds the five robots: 2 minutes)
       python benchmarks/bench_first_calls.py --check   (exit 1 when a row misses its target)
+      python benchmarks/bench_first_calls.py --record  (write benchmarks/results/first_calls.csv)
 """
 
 import argparse
@@ -36,6 +37,10 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _results import Recorder  # noqa: E402
 
 PRELUDE = """
 import json, time
@@ -181,7 +186,10 @@ def main():
     parser.add_argument("--check", action="store_true")
     parser.add_argument("--cache", action="store_true")
     parser.add_argument("--robots", action="store_true")
+    parser.add_argument("--record", action="store_true",
+                        help="write the figures to benchmarks/results/first_calls.csv")
     args = parser.parse_args()
+    recorder = Recorder("first_calls")
     floors = {"forward": fresh(FLOOR)["first"], "gradient": fresh(GRADIENT_FLOOR)["first"]}
     print(f"{'call':46s} {'first':>8s} {'/ floor':>8s} {'later':>9s}  target")
     print(f"{'floor: diffrax, hand-written double pendulum':46s} {floors['forward']:7.2f}s")
@@ -196,6 +204,12 @@ def main():
             ratio = f"{row['first'] / floors[floor]:7.2f}x"
             met, goal = row["first"] <= target * floors[floor], f"{target}x {floor} floor"
         missed += not met
+        if floor is None:
+            recorder.add(f"{name}: first call, seconds", "", row["first"], "s",
+                         FIT_TARGET_SECONDS)
+        else:
+            recorder.add(f"{name}: first call / the {floor} floor's", "",
+                         row["first"] / floors[floor], "×", target)
         print(f"{name:46s} {row['first']:7.2f}s {ratio:>8s} {1e3 * row['later']:7.1f}ms  "
               f"{'ok' if met else 'MISS'} ({goal})", flush=True)
     print(f"\n{len(ROWS) - missed} of {len(ROWS)} rows meet their targets.")
@@ -208,6 +222,8 @@ def main():
                 prelude = "import jax\n" + CACHE.format(directory=directory)
                 fresh(code, prelude)
                 row = fresh(code, prelude)
+            recorder.add(f"{name}: first call of a second process, persistent cache", "",
+                         row["first"], "s")
             print(f"{name:46s} {row['first']:7.2f}s", flush=True)
     if args.robots:
         print(f"\nRobots (example-robot-data), first calls in a fresh process each; target "
@@ -217,9 +233,15 @@ def main():
             late = [what for what, seconds in times.items()
                     if what != "loading the URDF" and seconds > ROBOT_TARGET_SECONDS]
             missed += bool(late)
+            for what, seconds in times.items():
+                if what != "loading the URDF":
+                    recorder.add(f"first {what}, seconds", name.split("/")[-1].split(".")[0],
+                                 seconds, "s", ROBOT_TARGET_SECONDS)
             print(f"{name.split('/')[-1]:24s} " + ", ".join(
                 f"{what} {seconds:.2f} s" for what, seconds in times.items())
                 + ("" if not late else "  MISS"), flush=True)
+    if args.record:
+        recorder.write()
     if args.check and missed:
         sys.exit(1)
 

@@ -2,6 +2,8 @@
 
 Run: python benchmarks/bench_trees.py            (about 20 minutes)
      python benchmarks/bench_trees.py --quick    (chains up to 20, the Panda arm)
+     python benchmarks/bench_trees.py --robots --record   (the robots alone; write
+                                                 benchmarks/results/robots.csv)
 
 Needs the test extras (Pinocchio, example-robot-data, yourdfpy) and, for the MJX columns,
 `pip install mujoco-mjx==3.17.0 mujoco==3.17.0` (pinned together: pip pairs mujoco-mjx with an
@@ -46,6 +48,7 @@ import jaxdyn  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _systems import CHAIN_PARAMS, chain_hand  # noqa: E402
+from _results import Recorder  # noqa: E402
 from _timing import compile_seconds, in_loop, interleaved  # noqa: E402
 
 try:
@@ -60,7 +63,7 @@ BATCH = 1024
 MJX_CHAIN_MAX = 5
 LOOP = 2000
 # Each robot program is compiled this many times afresh and timed each time: the same program
-# compiled afresh runs, now and then, 2–3× slower than usual (benchmarks/README.md, "Robots");
+# compiled afresh runs, now and then, 2–3× slower than usual (benchmarks/LOG.md, "Robots");
 # the figure is the median over the compilations, the range beside it.
 COMPILES = 3
 TOL = 1e-8
@@ -370,6 +373,9 @@ def robots(names):
             print(f"  {label:36s} {fmt(vmapped)} per state{spread} (compile "
                   f"{compile_time:4.1f} s); Pinocchio {fmt(pinocchio)}; ratio "
                   f"{vmapped / pinocchio:5.2f}×", flush=True)
+            robot = name.split("/")[-1].split(".")[0]
+            RECORDER.add(f"{label}: per state in a vmap of {BATCH} / Pinocchio per call",
+                         robot, vmapped / pinocchio)
             if label.startswith("forward dynamics, default"):
                 ours_fd = vmapped
             if label.startswith("torque regressor, welded"):
@@ -413,13 +419,19 @@ def robots(names):
                   + (" (inertias balanced by MuJoCo)" if balanced else ""), flush=True)
 
 
+RECORDER = Recorder("robots")
+
+
 def main():
     quick = "--quick" in sys.argv
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, float64"
           + (f", mujoco {mujoco.__version__}" if mujoco else ", MJX not installed"))
-    sizes = (2, 5, 10, 20) if quick else (2, 5, 10, 20, 50, 100)
-    chains(sizes, formulation_sizes=(5, 20) if quick else (5, 10, 20))
+    if "--robots" not in sys.argv:
+        sizes = (2, 5, 10, 20) if quick else (2, 5, 10, 20, 50, 100)
+        chains(sizes, formulation_sizes=(5, 20) if quick else (5, 10, 20))
     robots(ROBOTS[:1] if quick else ROBOTS)
+    if "--record" in sys.argv:
+        RECORDER.write()
 
 
 if __name__ == "__main__":

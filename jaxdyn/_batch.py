@@ -96,7 +96,7 @@ def simulate_batch(
       solve (Tsit5 at rtol = atol = 1e-6, 1e-4 in float32, final state only) to count each
       member's steps and runs members of similar cost together, so that a chunk or device of regular
       members does not wait for a chaotic one; the result is in the order given. It pays with
-      several chunks or devices and mixed costs (benchmarks/README.md).
+      several chunks or devices and mixed costs (benchmarks/LOG.md).
     - `progress`: a tqdm progress bar over the chunks.
     - `throw`: with True, a failing member raises a `RuntimeError` naming its index, its
       initial state and parameters, and jaxdyn's message for the failure (the time and state

@@ -10,7 +10,7 @@ over chunks of `CHUNK` states, each chunk vmapped. Measured on the Panda arm's f
 dynamics, per state in a batch of 1024 (2-core CPU, float64): 13.8 µs vmapped, 2.2 µs in
 chunks of 8, 9.9 µs one state at a time as XLA's runtime runs a loop, 1.6 µs one state at a
 time with the loop compiled as one function (jaxdyn's default, `jaxdyn._xla`;
-`benchmarks/README.md`). Equations formed as whole
+`benchmarks/LOG.md`). Equations formed as whole
 matrices do not use it: LAPACK's batched factorisations prefer the whole batch. Derivatives
 are those of the function itself, batched by plain `vmap` (a custom_vmap's own JVP cannot be
 linearised by JAX, see `chunked_vmap`), and nested `vmap`s batch the map.

@@ -88,7 +88,7 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
     return wrapper
 
 
-# XLA's CPU backend has two code generators for fused element-wise work (benchmarks/README.md,
+# XLA's CPU backend has two code generators for fused element-wise work (benchmarks/LOG.md,
 # "The straight-line program and XLA's CPU emitters"). `import jaxdyn` makes the elemental
 # emitters the process's default: on straight-line programs of more than a few hundred scalar
 # operations the newer fusion emitters generate code up to thousands of times slower. But a

@@ -1,6 +1,6 @@
 """The switches of XLA's CPU compiler that jaxdyn sets at import.
 
-Three, each for programs that jaxdyn forms (benchmarks/README.md, "XLA's CPU code generators"
+Three, each for programs that jaxdyn forms (benchmarks/LOG.md, "XLA's CPU code generators"
 and "Loops as one function"):
 
 - the fusion emitters compile the straight-line scalar programs of small systems
@@ -20,7 +20,7 @@ and "Loops as one function"):
   the runtime spreads the large kernels of a batch over the cores: `simulate_batch` compiles
   its solves without it (`jaxdyn._compile.BATCHED_LOOPS`), and a `jax.vmap` of `simulate`
   under your own `jax.jit` of 256 small systems runs 1.5× slower with it on two cores
-  (benchmarks/README.md, "Loops as one function").
+  (benchmarks/LOG.md, "Loops as one function").
 
 The switches are read when JAX first starts its CPU backend, so they are set here, before
 jaxdyn creates any array, unless the user chose values of their own.

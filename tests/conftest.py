@@ -9,7 +9,7 @@ reserve most of its memory at start-up.
 The tests check results, not speed, and half of their time is XLA compiling a few thousand
 distinct programs: XLA generates code at LLVM's optimisation level 0 (`compile_settings`;
 the fixture `xla_defaults` for tests of bit-for-bit properties) and Python's garbage
-collector leaves the imported modules alone (benchmarks/README.md, "The default test run":
+collector leaves the imported modules alone (benchmarks/LOG.md, "The default test run":
 the heaviest test files 344 → 247 s of CPU).
 """
 

@@ -206,3 +206,21 @@ def test_the_contact_guides_anymal_settles_on_its_feet(guides):
     moved = np.asarray(sol.contact.position[-1, :, :2] - sol.contact.position[-2, :, :2])
     assert np.max(np.abs(moved)) < 1e-4  # feet planted, not sliding
     assert abs(float(sol.q[-1, 2]) - standing) < 0.02  # stands at its height
+
+
+def test_published_tables_are_their_recorded_results():
+    """Every table of results on the README, the guides and the benchmarks page is the one
+    generated from the CSV its benchmark script recorded (`python benchmarks/tables.py`
+    rewrites them), and every recorded result is published somewhere."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+        import _results
+    published = set()
+    for page in _results.PAGES:
+        text = (ROOT / page).read_text()
+        assert _results.regenerated(text) == text, (
+            f"{page}: a table disagrees with benchmarks/results; run python benchmarks/tables.py")
+        published |= {m.group("name") for m in _results.REGION.finditer(text)}
+    recorded = {path.stem for path in (ROOT / "benchmarks" / "results").glob("*.csv")}
+    assert recorded and recorded == published
+

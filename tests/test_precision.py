@@ -39,7 +39,7 @@ SIMULATION_CASES = [*CASES[:2], pytest.param(*CASES[2], id=CASES[2][0], marks=py
                          ids=[c[0] for c in CASES])
 def test_float32_simulation_keeps_its_dtype_and_tracks_float64(name, dynamics, p, q0, u0):
     """Over 5 s of regular motion at the float32 default tolerance (1e-6): within 1e-3 of the
-    float64 solution (measured 1e-5 to 1e-4: benchmarks/README.md has the growth over time),
+    float64 solution (measured 1e-5 to 1e-4: benchmarks/LOG.md has the growth over time),
     with the energy error within 1e-4 of the energy scale."""
     ts = np.linspace(0.0, 5.0, 51)
     sol64 = jaxdyn.simulate(dynamics, np.array(q0), np.array(u0), p, t1=5.0, ts=ts)
@@ -104,7 +104,7 @@ def test_float32_stiff_solve_and_stiffness_report():
     report = jaxdyn.stiffness(spring, 0.0, q0, u0, p)
     assert report.stiff
     # In float32 an implicit solver's error estimate has a rounding floor near ε₃₂ h ‖J‖:
-    # at this stiffness ratio (10⁴) rtol = 1e-4 already fails, 1e-3 works (benchmarks/README).
+    # at this stiffness ratio (10⁴) rtol = 1e-4 already fails, 1e-3 works (benchmarks/LOG.md).
     sol = jaxdyn.simulate(spring, q0, u0, p, t1=1.0, solver=diffrax.Kvaerno5(), rtol=1e-3,
                           atol=1e-3)
     assert sol.q.dtype == F32 and int(sol.num_steps) < 100

@@ -117,7 +117,7 @@ def simulate(
       then needs `adjoint=diffrax.ForwardMode()`). Both differentiate the discrete solve
       (exactly what finite differences of the solve give). Any diffrax adjoint may be
       passed; for one long solve, `RecursiveCheckpointAdjoint(checkpoints=...)` with a
-      checkpoint per step avoids recomputation. Measured costs: benchmarks/README.md.
+      checkpoint per step avoids recomputation. Measured costs: benchmarks/LOG.md.
     - `throw`: raise on failure; if False, inspect `Solution.result` (NaN or inf in the
       initial state or parameters then gives `RESULTS.nonfinite_state_or_parameters` and NaN
       states, so that one bad member does not stop a vmapped batch).
