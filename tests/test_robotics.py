@@ -323,6 +323,28 @@ def test_centre_of_mass_counts_the_links_welded_to_the_world_unless_told_not_to(
                                   jaxdyn.centre_of_mass(floating, qf, pf, include_fixed=False))
 
 
+def test_the_regressor_per_joint_is_pinocchios_on_anymal():
+    """ANYmal-C (example-robot-data) has 78 URDF links, 13 moving bodies: the regressor of
+    `tree.merge_fixed()` has Pinocchio's 130 columns (ten per joint's body, the links welded
+    to it merged in, in the joint's frame) and equals `computeJointTorqueRegressor` at random
+    states, floating base included."""
+    robot = Robot.load(jaxdyn.example_robot_urdf("anymal_c"), floating=True)
+    (q_pin, v_pin, a_pin), (q, u, ud) = robot.random_states(2, 0)
+    bodies = robot.tree.merge_fixed()
+    names = [link.name for link in bodies.links]
+    assert len(robot.tree.links) == 78 and len(names) == 13
+    regressors = jax.vmap(lambda q, u, ud: jaxdyn.inverse_dynamics_regressor(
+        bodies, q, u, ud, robot.p))(q, u, ud)
+    for k in range(2):
+        theirs = pin.computeJointTorqueRegressor(robot.model, robot.data, q_pin[k], v_pin[k],
+                                                 a_pin[k])
+        ours = robot.permutation @ np.asarray(regressors[k])  # rows in Pinocchio's order
+        ours = np.concatenate([ours[:, 10 * names.index(link):10 * names.index(link) + 10]
+                               for link in robot.joint_link.values()], axis=1)
+        assert ours.shape == theirs.shape == (18, 130)
+        _close(ours, theirs)
+
+
 def test_identification_of_ur5_per_joint_keeps_every_link_plausible():
     """UR5 (example-robot-data) from 2 % noisy torques at 200 random states, the prior 30 %
     heavy: one body per joint (60 parameters, rank 36 as in Pinocchio's regressor), the
