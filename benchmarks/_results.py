@@ -118,4 +118,5 @@ def regenerated(text: str) -> str:
 
 
 # The pages whose tables are generated here.
-PAGES = ("README.md", "benchmarks/README.md", "docs/guides/speed.md", "docs/guides/trees.md")
+PAGES = ("README.md", "benchmarks/README.md", "docs/guides/speed.md", "docs/guides/trees.md",
+         "docs/guides/identification.md")

@@ -4,6 +4,7 @@ with and without globalisation, and how long it takes.
 Run: python benchmarks/bench_globalisation.py              (about 5 minutes on two cores)
      python benchmarks/bench_globalisation.py --starts 100 (the issue's 100 starting points)
      python benchmarks/bench_globalisation.py --problem double-pendulum --starts 100
+     ... --record                                (write results/globalisation_<problem>.csv)
 
 Problem: the elastic pendulum (polar coordinates r, θ; m = 0.9, g = 9.81 known; k = 35 and
 l₀ = 1.2 fitted, with both experiments' initial states), two experiments of 4 s from rest at
@@ -50,6 +51,7 @@ jax.config.update("jax_enable_x64", True)
 import jaxdyn  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
+from _results import Recorder  # noqa: E402
 from _systems import ELASTIC_PARAMS, elastic_T, elastic_V  # noqa: E402
 from bench_work_precision import elastic_rhs  # noqa: E402
 
@@ -108,7 +110,10 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--starts", type=int, default=40)
     parser.add_argument("--problem", choices=("elastic", "double-pendulum"), default="elastic")
+    parser.add_argument("--record", action="store_true",
+                        help="write benchmarks/results/globalisation_<problem>.csv")
     args = parser.parse_args()
+    recorder = Recorder(f"globalisation_{args.problem.replace('-', '_')}")
     problem = (elastic_problem if args.problem == "elastic" else pendulum_problem)()
     system, data, truth = problem["system"], problem["data"], problem["truth"]
     fitted = [key for key, trained in problem["trained"].items() if trained]
@@ -143,6 +148,14 @@ def main():
         failures = args.starts - successes
         print(f"{name:44s} {successes / args.starts:8.0%} {honest:>3d}/{failures:<3d} "
               f"{statistics.median(times):9.2f} {max(times):7.2f} {first:8.2f}", flush=True)
+        recorder.add(f"{name}: starts that reach the truth (of {args.starts})", "",
+                     100 * successes / args.starts, "%")
+        if failures:  # (none to report where every start reached the truth)
+            recorder.add(f"{name}: failures that report themselves (data not explained)", "",
+                         100 * honest / failures, "%")
+        recorder.add(f"{name}: median seconds a fit", "", statistics.median(times), "s")
+    if args.record:
+        recorder.write()
 
 
 if __name__ == "__main__":
