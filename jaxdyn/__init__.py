@@ -78,6 +78,28 @@ from ._linearisation import (
     normal_modes as normal_modes,
 )
 from ._batch import simulate_batch as simulate_batch
+from ._optimal_control.problem import (
+    AbstractDiscretisation as AbstractDiscretisation,
+    Euler as Euler,
+    RungeKutta4 as RungeKutta4,
+    SemiImplicitEuler as SemiImplicitEuler,
+    ShootingProblem as ShootingProblem,
+)
+from ._optimal_control.solver import (
+    DDP as DDP,
+    ILQR as ILQR,
+    AbstractTrajectorySolver as AbstractTrajectorySolver,
+)
+from ._optimal_control.optimum import (
+    NotConvergedWarning as NotConvergedWarning,
+    OptimalTrajectory as OptimalTrajectory,
+    TrackingPolicy as TrackingPolicy,
+    solve_optimal_control as solve_optimal_control,
+)
+from ._optimal_control.mpc import (
+    ClosedLoop as ClosedLoop,
+    model_predictive_control as model_predictive_control,
+)
 from ._state import allow_float32 as allow_float32
 from ._stiffness import Stiffness as Stiffness, stiffness as stiffness
 from ._variational import (

@@ -16,6 +16,7 @@ are those of the function itself, batched by plain `vmap` (a custom_vmap's own J
 linearised by JAX, see `chunked_vmap`), and nested `vmap`s batch the map.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -40,7 +41,15 @@ def chunked_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
     """`fn`, whose `jax.vmap` runs in chunks of `CHUNK` states. Non-array leaves of the
     arguments (static options, Python callables) are passed through unchanged."""
 
+    # The arguments bound in a partial (a formulation: `functools.partial(equations, dynamics)`)
+    # join the arguments: an array among them may be batched (the inputs r a system carries,
+    # under a `vmap` over nodes of a trajectory), which a custom_vmap cannot close over.
+    bound = fn.args if isinstance(fn, functools.partial) else ()
+    if bound:
+        fn = functools.partial(fn.func, **fn.keywords)
+
     def call(*args):
+        args = (*bound, *args)
         leaves, treedef = jax.tree_util.tree_flatten(args)
         where = [i for i, leaf in enumerate(leaves) if eqx.is_array(leaf)]
 

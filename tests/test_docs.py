@@ -137,7 +137,8 @@ def test_the_site_renders_notebooks_examples_and_benchmarks(site):
 # The pages whose code runs, in the order a reader meets them (the site's navigation): the
 # README's quickstart first, whose pendulum later pages reuse.
 _PAGES = ["README.md", "docs/getting-started.md"] + [f"docs/guides/{name}.md" for name in (
-    "formulations", "trees", "constraints", "events", "contact", "control", "identification",
+    "formulations", "trees", "constraints", "events", "contact", "control", "optimal_control",
+    "identification",
     "batches", "stability", "speed", "errors")]
 
 

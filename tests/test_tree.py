@@ -617,3 +617,26 @@ def test_later_calls_of_the_robotics_functions_and_a_gradient_compile_nothing():
     np.testing.assert_allclose(robot.residual(0.0, np.array([0.4, -0.2, 0.1]), np.full(3, 0.2),
                                               second[0]), 0.0, atol=1e-12)
     assert not np.allclose(first[1], second[1])
+
+
+def test_locked_joints_are_pinocchios_reduced_model():
+    """`from_urdf(..., locked=...)` welds the Panda's fingers at zero: its mass matrix and
+    forward dynamics are those of Pinocchio's `buildReducedModel` at the zero reference, and
+    an unknown joint name is an error."""
+    path = jaxdyn.example_robot_urdf("panda")
+    fingers = ("panda_finger_joint1", "panda_finger_joint2")
+    tree, p = jaxdyn.from_urdf(path, locked=fingers, damping=False)
+    model = pin.buildModelFromUrdf(path)
+    reduced = pin.buildReducedModel(model, [model.getJointId(f) for f in fingers],
+                                    pin.neutral(model))
+    data = reduced.createData()
+    rng = np.random.default_rng(3)
+    q, u, tau = rng.uniform(-1, 1, 7), rng.normal(size=7), rng.normal(size=7)
+    assert tree.num_coordinates == reduced.nq == 7
+    body = jaxdyn.ArticulatedBody(tree)
+    assert_close(body.mass_matrix(0.0, q, u, p), pin.crba(reduced, data, q), rtol=0, atol=1e-12)
+    driven = jaxdyn.Controlled(body, input_map=list(range(7)), inputs=jnp.asarray(tau))
+    assert_close(driven.accelerations(0.0, q, u, p), pin.aba(reduced, data, q, u, tau),
+                 rtol=0, atol=1e-11)
+    with pytest.raises(ValueError, match="not in the file"):
+        jaxdyn.from_urdf(path, locked=("panda_joint8_typo",))

@@ -28,7 +28,7 @@ class LinkParameter(eqx.Module):
 
 
 def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
-              parameters: bool = True, damping: bool = True):
+              parameters: bool = True, damping: bool = True, locked=()):
     """Load a URDF robot model.
 
     **Arguments:**
@@ -45,6 +45,9 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
       becomes a damper −c q̇ on it (a parameter "damping" of the link it moves, with
       `parameters`); Coulomb `friction` is not imported (it is not smooth). Pinocchio's
       `aba` ignores both: compare with it using `damping=False`.
+    - `locked`: names of joints welded at their zero position (`Fixed`), e.g. a gripper's
+      fingers when planning the arm's motion (Pinocchio's `buildReducedModel` with a zero
+      reference configuration).
 
     **Returns:** (tree, p), with p = {link name: {"mass", "com", "inertia"[, "damping"]}}
     (inertia about the centre of mass, in link axes).
@@ -67,6 +70,9 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
         if joint.parent not in links or joint.child not in links:
             raise ValueError(f"Joint {joint.name!r} connects links that are not in the file.")
         parent_joint[joint.child] = joint
+    unknown = set(locked) - {joint.name for joint in model.joints}
+    if unknown:
+        raise ValueError(f"locked names joints that are not in the file: {sorted(unknown)}.")
     roots = [name for name in links if name not in parent_joint]
     if len(roots) != 1:
         raise ValueError(f"A URDF tree has one root link, this file has {roots}.")
@@ -86,7 +92,7 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
                 np.zeros(3), np.eye(3), None
         else:
             urdf_joint = parent_joint[name]
-            joint = _joint(urdf_joint)
+            joint = Fixed() if urdf_joint.name in locked else _joint(urdf_joint)
             origin = np.eye(4) if urdf_joint.origin is None else np.asarray(urdf_joint.origin)
             translation, rotation, parent = origin[:3, 3], origin[:3, :3], urdf_joint.parent
             dynamics = urdf_joint.dynamics

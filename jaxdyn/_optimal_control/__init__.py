@@ -1,0 +1,1 @@
+"""Trajectory optimisation: shooting problems, iLQR and DDP, their derivatives, MPC."""

@@ -1,0 +1,303 @@
+"""The optimal control problem in discrete time: a horizon of N nodes, the dynamics discretised
+by a fixed-step one-step method, running and terminal costs.
+
+    minimise   J = Σ_{k<N} Δt ℓ(t_k, q_k, u_k, r_k, p) + Φ(t_N, q_N, u_N, p)
+    subject to x_{k+1} = F_Δt(t_k, x_k, r_k, p),   x_0 = (q0, u0),   r_lo ≤ r_k ≤ r_hi,
+
+with x = (q, u) the state of a `jaxdyn` formulation driven by inputs r (`jaxdyn.Controlled`),
+r held constant over each interval (a zero-order hold), t_k = t0 + k Δt.
+"""
+
+import abc
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._convention import call
+from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
+from .._form.articulated import ArticulatedBody
+from .._form.controlled import Controlled, find_controlled
+from .._form.euler_lagrange import Lagrangian
+from .._form.gibbs_appell import GibbsAppell
+from .._form.kane import Kane
+
+_RUNNING_ARGS = ("q", "u", "r", "p")
+_TERMINAL_ARGS = ("q", "u", "p")
+
+
+class AbstractDiscretisation(eqx.Module):
+    """A fixed-step one-step method x_{k+1} = F_Δt(t_k, x_k, r_k) for q̇ = K u, u̇ = a(q, u, r)
+    with the inputs held over the step."""
+
+    @abc.abstractmethod
+    def step(self, field, rates, t, q, u, dt) -> tuple[jax.Array, jax.Array]:
+        """(q_{k+1}, u_{k+1}) from (q_k, u_k); `field(t, q, u) → (q̇, u̇)`, `rates(t, q, u) → q̇`."""
+
+
+class Euler(AbstractDiscretisation):
+    """The explicit Euler method, x_{k+1} = x_k + Δt ẋ(t_k, x_k): first order."""
+
+    def step(self, field, rates, t, q, u, dt):
+        qd, ud = field(t, q, u)
+        return q + dt * qd, u + dt * ud
+
+
+class SemiImplicitEuler(AbstractDiscretisation):
+    """The symplectic (semi-implicit) Euler method, first order: the speeds first, then the
+    coordinates with the new speeds,
+
+        u_{k+1} = u_k + Δt u̇(t_k, q_k, u_k),   q_{k+1} = q_k + Δt K(q_k) u_{k+1},
+
+    Crocoddyl's default integrated action model (`IntegratedActionModelEuler`), which keeps
+    a pendulum's energy bounded where the explicit method lets it grow."""
+
+    def step(self, field, rates, t, q, u, dt):
+        _, ud = field(t, q, u)
+        u_next = u + dt * ud
+        return q + dt * rates(t, q, u_next), u_next
+
+
+class RungeKutta4(AbstractDiscretisation):
+    """The classical fourth-order Runge–Kutta method (Kutta, 1901) with the inputs held over
+    the step:
+
+        k₁ = ẋ(t, x),  k₂ = ẋ(t + Δt/2, x + Δt k₁/2),  k₃ = ẋ(t + Δt/2, x + Δt k₂/2),
+        k₄ = ẋ(t + Δt, x + Δt k₃),   x_{k+1} = x + Δt (k₁ + 2k₂ + 2k₃ + k₄)/6."""
+
+    def step(self, field, rates, t, q, u, dt):
+        def stage(c, dq, du):
+            return field(t + c * dt, q + c * dt * dq, u + c * dt * du)
+
+        k1 = field(t, q, u)
+        k2 = stage(0.5, *k1)
+        k3 = stage(0.5, *k2)
+        k4 = stage(1.0, *k3)
+        dq, du = (a + 2 * b + 2 * c + d for a, b, c, d in zip(k1, k2, k3, k4))
+        return q + dt / 6 * dq, u + dt / 6 * du
+
+
+class ShootingProblem(eqx.Module):
+    r"""An optimal control problem over N intervals of Δt of a system with inputs:
+
+        minimise   Σ_{k<N} Δt ℓ(q_k, u_k, r_k, p) + Φ(q_N, u_N, p)
+        subject to (q, u)_{k+1} = F_Δt((q, u)_k, r_k),   (q, u)_0 = (q0, u0),
+                   r_lo ≤ r_k ≤ r_hi,
+
+    F_Δt one step of `discretisation` of the equations of motion q̇ = K u,
+    M u̇ = f + B r with r held over the step. The running cost is integrated by the
+    rectangle rule (Δt ℓ at each node), as Crocoddyl does with its Euler models.
+
+    **Arguments:**
+
+    - `dynamics`: any jaxdyn formulation driven by inputs (`jaxdyn.Controlled`, possibly
+      inside `Constrained`): `Lagrangian`, `GibbsAppell`, `Kane`, `ArticulatedBody` (robots).
+    - `running_cost`: ℓ(q, u, r, p) → a scalar, or a residual vector ρ for ℓ = ½‖ρ‖²
+      (ℓ(t, q, u, r, p) with `time_dependent`). Write least-squares costs (tracking,
+      reaching, regularisation, weights folded into ρ) as residuals: iLQR then uses the
+      Gauss–Newton Hessian ρ'ᵀρ', positive semidefinite wherever the trajectory is, as
+      Crocoddyl's residual costs do; a scalar's Hessian is exact, and where it is indefinite
+      (a squared distance through nonlinear kinematics, far from the target) the
+      regularisation has to make up for it.
+    - `terminal_cost`: Φ(q, u, p) → a scalar or a residual vector (Φ(t, q, u, p) with
+      `time_dependent`); None: 0.
+    - `num_nodes`: N, the number of intervals.
+    - `dt`: Δt, the interval.
+    - `discretisation`: `jaxdyn.RungeKutta4()` (default), `jaxdyn.SemiImplicitEuler()`
+      or `jaxdyn.Euler()`.
+    - `input_bounds`: (r_lo, r_hi), arrays of shape (k,) or scalars (±inf where unbounded);
+      None for unbounded inputs.
+    - `t0`: the time of node 0.
+    - `time_dependent`: whether the costs take t first.
+
+    Targets and weights that you want to differentiate the optimum with respect to belong in
+    p, with the physical parameters (`jaxdyn.solve_optimal_control` differentiates with respect
+    to q0, u0 and p).
+
+    **Example** (a cart-pole swung up):
+
+        problem = jaxdyn.ShootingProblem(
+            plant, running_cost=lambda q, u, r, p: 1e-2 * r @ r,
+            terminal_cost=lambda q, u, p: 1e3 * ((q - target) @ (q - target) + u @ u),
+            num_nodes=100, dt=0.02, input_bounds=(-20.0, 20.0))
+    """
+
+    dynamics: AbstractDynamics
+    running_cost: object = eqx.field(static=True)
+    terminal_cost: object = eqx.field(static=True)
+    num_nodes: int = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+    discretisation: AbstractDiscretisation = RungeKutta4()
+    input_bounds: tuple | None = eqx.field(default=None, static=True)
+    t0: float | jax.Array = 0.0
+    time_dependent: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.dynamics, AbstractDynamics):
+            raise ValueError("ShootingProblem needs a jaxdyn formulation (AbstractDynamics), "
+                             f"got {type(self.dynamics).__name__}.")
+        if find_controlled(self.dynamics) is None:
+            raise ValueError(f"{type(self.dynamics).__name__} declares no inputs to optimise: "
+                             "wrap the formulation as jaxdyn.Controlled(dynamics, input_map).")
+        if not callable(self.running_cost):
+            raise ValueError("running_cost must be a function ℓ(q, u, r, p) → scalar.")
+        if self.terminal_cost is not None and not callable(self.terminal_cost):
+            raise ValueError("terminal_cost must be a function Φ(q, u, p) → scalar, or None.")
+        if int(self.num_nodes) != self.num_nodes or self.num_nodes < 1:
+            raise ValueError(f"num_nodes must be a positive integer, got {self.num_nodes!r}.")
+        if not float(self.dt) > 0:
+            raise ValueError(f"dt must be positive, got {self.dt!r}.")
+        if not isinstance(self.discretisation, AbstractDiscretisation):
+            raise ValueError("discretisation must be jaxdyn.RungeKutta4(), "
+                             "jaxdyn.SemiImplicitEuler() or jaxdyn.Euler(), got "
+                             f"{type(self.discretisation).__name__}.")
+        if self.input_bounds is not None and len(self.input_bounds) != 2:
+            raise ValueError("input_bounds must be a pair (r_lo, r_hi).")
+
+    def __init__(self, dynamics, running_cost, terminal_cost=None, *, num_nodes, dt,
+                 discretisation=RungeKutta4(), input_bounds=None, t0=0.0,
+                 time_dependent=False):
+        self.dynamics = dynamics
+        self.running_cost = running_cost
+        self.terminal_cost = terminal_cost
+        self.num_nodes = int(num_nodes)
+        self.dt = float(dt)
+        self.discretisation = discretisation
+        # Static Python floats, so that a problem is hashed by value and a new problem with
+        # the same bounds reuses the compiled solver.
+        self.input_bounds = None if input_bounds is None else tuple(
+            tuple(float(v) for v in jnp.ravel(jnp.asarray(b, float))) for b in input_bounds)
+        self.t0 = t0
+        self.time_dependent = time_dependent
+
+    # -- the discrete dynamics ------------------------------------------------------------------
+
+    def times(self, dtype=float):
+        """t_k = t0 + k Δt, k = 0 … N."""
+        return self.t0 + self.dt * jnp.arange(self.num_nodes + 1, dtype=dtype)
+
+    def num_inputs(self, q, u, p=None) -> int:
+        """k, the number of inputs."""
+        controlled = find_controlled(self.dynamics)
+        assert controlled is not None
+        return controlled.num_inputs(q, u, p)
+
+    def step(self, t, x, r, p, num_q):
+        """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
+        driven = self.dynamics.with_inputs(r)
+        implicit = _residual_is_equations(self.dynamics)
+
+        def field(t, q, u):
+            if implicit:
+                return (driven.coordinate_rates(t, q, u, p),
+                        accelerations(self.dynamics, t, q, u, r, p))
+            rates, accelerations_, _, _ = equations_of_motion(driven, t, q, u, p)
+            return rates, accelerations_
+
+        def rates(t, q, u):
+            return driven.coordinate_rates(t, q, u, p)
+
+        q, u = self.discretisation.step(field, rates, t, x[:num_q], x[num_q:],
+                                        jnp.asarray(self.dt, x.dtype))
+        return jnp.concatenate([q, u])
+
+    def bounds(self, num_inputs, dtype):
+        """(r_lo, r_hi) as arrays of shape (k,) (±inf where unbounded), (None, None) for a
+        problem without bounds."""
+        if self.input_bounds is None:
+            return None, None
+        lo, hi = (jnp.broadcast_to(jnp.asarray(b, dtype), (num_inputs,))
+                  for b in self.input_bounds)
+        return lo, hi
+
+    # -- the costs ------------------------------------------------------------------------------
+
+    def running_value(self, t, x, r, p, num_q):
+        """ℓ as the user's function returns it: a scalar, or a residual vector ρ."""
+        return _cost_value(call(self.running_cost, "running cost ℓ", self.time_dependent,
+                                _RUNNING_ARGS, t, x[:num_q], x[num_q:], r, p), "running cost ℓ")
+
+    def final_value(self, t, x, p, num_q):
+        """Φ as the user's function returns it: a scalar, or a residual vector ρ."""
+        if self.terminal_cost is None:
+            return jnp.zeros((), x.dtype)
+        return _cost_value(call(self.terminal_cost, "terminal cost Φ", self.time_dependent,
+                                _TERMINAL_ARGS, t, x[:num_q], x[num_q:], p), "terminal cost Φ")
+
+    def node_cost(self, t, x, r, p, num_q):
+        """Δt ℓ(t_k, q_k, u_k, r_k, p), the running cost of node k (ℓ = ½‖ρ‖² for a
+        residual)."""
+        return self.dt * _as_cost(self.running_value(t, x, r, p, num_q))
+
+    def final_cost(self, t, x, p, num_q):
+        """Φ(t_N, q_N, u_N, p), the terminal cost (0 when None; ½‖ρ‖² for a residual)."""
+        return _as_cost(self.final_value(t, x, p, num_q))
+
+    def cost(self, xs, rs, p, num_q):
+        """J = Σ_{k<N} Δt ℓ_k + Φ_N of a trajectory (xs (N+1, n), rs (N, k))."""
+        ts = self.times(xs.dtype)
+        running = jax.vmap(self.node_cost, in_axes=(0, 0, 0, None, None))(
+            ts[:-1], xs[:-1], rs, p, num_q)
+        return jnp.sum(running) + self.final_cost(ts[-1], xs[-1], p, num_q)
+
+    def rollout(self, x0, rs, p, num_q):
+        """The states x_0 … x_N reached from x0 under the inputs rs (a single shooting)."""
+        ts = self.times(x0.dtype)
+
+        def one(x, step):
+            t, r = step
+            x_next = self.step(t, x, r, p, num_q)
+            return x_next, x_next
+
+        _, xs = jax.lax.scan(one, x0, (ts[:-1], rs))
+        return jnp.concatenate([x0[None], xs])
+
+
+def _residual_is_equations(dynamics) -> bool:
+    """Whether the system's residual R(q, u, u̇, r) = M u̇ − f − B r is the equations its
+    accelerations solve: a formulation driven directly, not constrained or in contact."""
+    return isinstance(dynamics, Controlled) and isinstance(
+        dynamics.dynamics, (Lagrangian, GibbsAppell, Kane, ArticulatedBody))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def accelerations(dynamics, t, q, u, r, p):
+    """u̇(q, u, r) of M u̇ = f + B r, differentiated through the residual: from
+    R(q, u, u̇(q, u, r), r) = 0,
+
+        δu̇ = −M⁻¹ (∂R/∂q δq + ∂R/∂u δu + ∂R/∂r δr + ∂R/∂p δp),
+
+    one forward-mode pass of the residual (for a tree, the recursive Newton–Euler algorithm)
+    per direction and one factorisation of M, instead of the derivative of the solve itself
+    (for a tree, of the articulated-body algorithm): the route of Carpentier and Mansard's
+    analytical derivatives of rigid-body dynamics (RSS 2018), here by autodiff."""
+    return equations_of_motion(dynamics.with_inputs(r), t, q, u, p)[1]
+
+
+@accelerations.defjvp
+def _accelerations_jvp(dynamics, primals, tangents):
+    t, q, u, r, p = primals
+    _, dq, du, dr, dp = tangents
+    driven = dynamics.with_inputs(r)
+    ud = equations_of_motion(driven, t, q, u, p)[1]
+    mass_matrix = formed_equations(driven, t, q, u, p)[0]
+
+    def residual(q, u, r, p):
+        return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
+
+    _, d_residual = jax.jvp(residual, (q, u, r, p), (dq, du, dr, dp))
+    factor = jax.scipy.linalg.cho_factor(mass_matrix)
+    return ud, -jax.scipy.linalg.cho_solve(factor, d_residual)
+
+
+def _cost_value(value, name):
+    value = jnp.asarray(value)
+    if value.ndim > 1:
+        raise ValueError(f"the {name} must return a scalar or a residual vector ρ (ℓ = ½‖ρ‖²),"
+                         f" got shape {value.shape}.")
+    return value
+
+
+def _as_cost(value):
+    return value if value.ndim == 0 else 0.5 * value @ value

@@ -1,0 +1,365 @@
+"""Trajectory optimisation against Crocoddyl: the same optimal control problems, written once in
+jaxdyn (`ShootingProblem`, `solve_optimal_control`) and once in Crocoddyl (free forward
+dynamics of a Pinocchio model, `IntegratedActionModelEuler`, residual costs), reach the same
+optimum.
+
+Each problem is first checked to be the same problem: Crocoddyl's step F(x, r) equals jaxdyn's
+`SemiImplicitEuler` step, the rollouts of the same inputs agree, and Crocoddyl's total cost of
+jaxdyn's optimal trajectory equals jaxdyn's cost to round-off. Then Crocoddyl's solver, run to
+its round-off (th_stop = 1e-16), gives the reference optimum.
+
+How close the optima must be follows from jaxdyn's stopping test: it stops once the full step's
+predicted decrease is below tol (1 + |J|), so its cost lies above the optimum by about that much
+(the decrease a Gauss–Newton step still had to make). The inputs then lie within
+sqrt(2 ΔJ / λ) of the optimal ones, λ the least curvature of J in the inputs, which is at least
+Δt w_r (the input weight of the running cost; the Gauss–Newton Hessian of the rest is positive
+semidefinite, and at an optimum with active bounds the gradient only adds to J along feasible
+directions). With tol = 1e-12 that bound is 3–5e-4; the solvers agree far better (1e-5 on the
+Panda, whose input weight is small), and a different local optimum would be off by O(1).
+
+Cases: (a) the Panda arm (fingers locked) reaching a point with its hand, gravity-compensating
+torque regularisation and torque bounds, solved with SolverBoxFDDP; the bounds are tightened
+from the Panda's own (87 / 12 N m, never reached by this motion) so that some are active at the
+optimum; (b) a fully actuated double pendulum (a URDF written here, read by both) swung up to
+upright, unbounded, solved with SolverFDDP, and by jaxdyn's DDP as well as iLQR.
+
+Crocoddyl 3.2.1's wheels are built against Pinocchio 4.0.0's headers: with Pinocchio 4.1 it
+reads the model's layout wrongly (no gravity in its dynamics, an allocation failure building a
+gravity residual). The fixture `crocoddyl_reads_pinocchio` checks Crocoddyl's dynamics against
+Pinocchio's `aba` first and names the mismatch.
+"""
+
+import importlib.metadata
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import crocoddyl
+import jaxdyn
+
+N, DT = 100, 0.01
+TOL = 1e-12  # jaxdyn's stopping tolerance in these tests (the default is 1e-9)
+ROUND_OFF = 1e-13
+
+# -- the Panda reaching a point ----------------------------------------------------------------
+
+FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
+HAND = "panda_hand"
+TARGET = np.array([0.4, 0.2, 0.5])
+Q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+# The Panda's torque limits are 87 N m (joints 1–4) and 12 N m (5–7); the optimal motion stays
+# within 11, 21, 14, 24, 3, 4, 0.2 N m. Joints 1 and 3 are limited to 8 and 10 N m here, so
+# that bounds are active at the optimum (at 3 nodes each, in both solvers).
+LIMITS = np.array([8.0, 87.0, 10.0, 87.0, 12.0, 12.0, 12.0])
+# Running: hand position, joint speeds, torques less gravity's; terminal: position, speeds.
+W_X, W_U, W_R, W_XN, W_UN = 2e1, 2e-1, 2e-3, 2e3, 2e1
+
+# -- the double pendulum -----------------------------------------------------------------------
+
+
+def _rod(name, mass, length):
+    i = mass * length**2 / 12
+    return (f'<link name="{name}"><inertial><origin xyz="0 0 {-length / 2}"/>'
+            f'<mass value="{mass}"/><inertia ixx="{i}" iyy="{i}" izz="1e-4" ixy="0" ixz="0" '
+            'iyz="0"/></inertial></link>')
+
+
+# Revolute joints about y, hanging along −z at q = 0 (Pinocchio reads a "revolute" joint about
+# a coordinate axis as one angle; a "continuous" one would be (cos, sin)).
+DOUBLE_PENDULUM = f"""<?xml version="1.0"?>
+<robot name="double_pendulum">
+  <link name="base"/>
+  {_rod("upper", 1.0, 1.0)}
+  {_rod("lower", 0.5, 0.8)}
+  <joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/>
+    <axis xyz="0 1 0"/><limit lower="-10" upper="10" effort="100" velocity="100"/></joint>
+  <joint name="elbow" type="revolute"><parent link="upper"/><child link="lower"/>
+    <origin xyz="0 0 -1.0"/><axis xyz="0 1 0"/>
+    <limit lower="-10" upper="10" effort="100" velocity="100"/></joint>
+</robot>
+"""
+UPRIGHT = np.array([np.pi, 0.0, 0.0, 0.0])
+W_STATE, W_INPUT, W_FINAL = 1.0, 1e-2, 1e3
+
+
+def crocoddyl_mismatch():
+    """None where Crocoddyl's forward dynamics are Pinocchio's `aba` (with gravity) on a sample
+    arm, else what differs and why (a Crocoddyl built against another Pinocchio than the
+    installed one reads its model wrongly)."""
+    model = pin.buildSampleModelManipulator()
+    state = crocoddyl.StateMultibody(model)
+    actuation = crocoddyl.ActuationModelFull(state)
+    dynamics = crocoddyl.DifferentialActionModelFreeFwdDynamics(
+        state, actuation, crocoddyl.CostModelSum(state, actuation.nu))
+    data = dynamics.createData()
+    rng = np.random.default_rng(0)
+    q = pin.randomConfiguration(model)
+    v, tau = rng.normal(size=model.nv), rng.normal(size=model.nv)
+    dynamics.calc(data, np.concatenate([q, v]), tau)
+    expected = pin.aba(model, model.createData(), q, v, tau)
+    if np.allclose(data.xout, expected, rtol=0, atol=1e-10):
+        return None
+    return ("Crocoddyl's forward dynamics differ from Pinocchio's aba (by "
+            f"{np.max(np.abs(data.xout - expected)):.3g}): crocoddyl "
+            f"{importlib.metadata.version('crocoddyl')} was built against another Pinocchio "
+            f"than the installed pin {importlib.metadata.version('pin')} (crocoddyl 3.2.1 "
+            "needs pin 4.0.0).")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def crocoddyl_reads_pinocchio():
+    """Crocoddyl's forward dynamics are Pinocchio's `aba` (with gravity) on a sample arm."""
+    mismatch = crocoddyl_mismatch()
+    if mismatch is not None:
+        pytest.fail(mismatch)
+
+
+def _crocoddyl_problem(model, x0, running_costs, terminal_costs, bounds=None):
+    """Crocoddyl's shooting problem: free forward dynamics, the Euler integrated action model
+    (semi-implicit: v⁺ = v + Δt a, q⁺ = q + Δt v⁺; running cost Δt ℓ; terminal Δt = 0)."""
+    state = crocoddyl.StateMultibody(model)
+    actuation = crocoddyl.ActuationModelFull(state)
+
+    def costs(terms):
+        total = crocoddyl.CostModelSum(state, actuation.nu)
+        for name, (activation, residual, weight) in terms(state, actuation.nu).items():
+            total.addCost(name, crocoddyl.CostModelResidual(state, activation, residual), weight)
+        return total
+
+    def action(terms, dt):
+        return crocoddyl.IntegratedActionModelEuler(
+            crocoddyl.DifferentialActionModelFreeFwdDynamics(state, actuation, costs(terms)),
+            dt)
+
+    running, terminal = action(running_costs, DT), action(terminal_costs, 0.0)
+    if bounds is not None:
+        running.u_lb, running.u_ub = -bounds, bounds
+    problem = crocoddyl.ShootingProblem(x0, [running] * N, terminal)
+    problem.nthreads = 1
+    return problem
+
+
+def _crocoddyl_optimum(problem, guess, bounded):
+    """Crocoddyl's optimum from the rollout of the inputs `guess` (a feasible start), to
+    round-off."""
+    solver = (crocoddyl.SolverBoxFDDP if bounded else crocoddyl.SolverFDDP)(problem)
+    solver.th_stop = 1e-16
+    us = list(np.asarray(guess))
+    assert solver.solve(problem.rollout(us), us, 500, True)
+    return solver
+
+
+# -- the problems (benchmarks/bench_optimal_control.py builds its own with these) -------------
+
+
+def panda_problem(limits=LIMITS):
+    """The Panda reaching TARGET from Q0 at rest, torques bounded by ±`limits` (those of this
+    test by default; the Panda's own are 87 / 12 N m): jaxdyn's problem `problem`, its
+    parameters `p`, the start `q0`, `hold` (a start q → the N torques that hold it against
+    gravity: the guess) and Crocoddyl's problem `reference`."""
+    tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf("panda"), locked=FINGERS,
+                               damping=False)  # Pinocchio's aba has no joint damping
+    body = jaxdyn.ArticulatedBody(tree)
+    arm = jaxdyn.Controlled(body, input_map=list(range(7)))
+    target = jnp.asarray(TARGET)
+
+    def gravity(q, p):
+        return -body.forcing(0.0, q, jnp.zeros_like(q), p)
+
+    def running(q, u, r, p):
+        _, x = jaxdyn.frame_pose(tree, HAND, q, p)
+        return jnp.concatenate([np.sqrt(W_X) * (x - target), np.sqrt(W_U) * u,
+                                np.sqrt(W_R) * (r - gravity(q, p))])
+
+    def terminal(q, u, p):
+        _, x = jaxdyn.frame_pose(tree, HAND, q, p)
+        return jnp.concatenate([np.sqrt(W_XN) * (x - target), np.sqrt(W_UN) * u])
+
+    problem = jaxdyn.ShootingProblem(arm, running, terminal, num_nodes=N, dt=DT,
+                                     discretisation=jaxdyn.SemiImplicitEuler(),
+                                     input_bounds=(-limits, limits))
+
+    def hold(q):
+        return jnp.tile(gravity(q, p), (N, 1))
+
+    path = jaxdyn.example_robot_urdf("panda")
+    full = pin.buildModelFromUrdf(path)
+    model = pin.buildReducedModel(full, [full.getJointId(name) for name in FINGERS],
+                                  pin.neutral(full))
+    hand = model.getFrameId(HAND)
+    speeds = np.concatenate([np.zeros(7), np.ones(7)])  # the state residual's v part alone
+
+    def position(state, nu):
+        return (crocoddyl.ActivationModelQuad(3),
+                crocoddyl.ResidualModelFrameTranslation(state, hand, TARGET, nu))
+
+    def speed(state, nu):
+        return (crocoddyl.ActivationModelWeightedQuad(speeds),
+                crocoddyl.ResidualModelState(state, np.zeros(14), nu))
+
+    def running_costs(state, nu):
+        return {"hand": (*position(state, nu), W_X), "speed": (*speed(state, nu), W_U),
+                "torque": (crocoddyl.ActivationModelQuad(nu),
+                           crocoddyl.ResidualModelControlGrav(state, nu), W_R)}
+
+    def terminal_costs(state, nu):
+        return {"hand": (*position(state, nu), W_XN), "speed": (*speed(state, nu), W_UN)}
+
+    reference = _crocoddyl_problem(model, np.concatenate([Q0, np.zeros(7)]), running_costs,
+                                   terminal_costs, limits)
+    return dict(problem=problem, p=p, q0=Q0, hold=hold, reference=reference)
+
+
+def double_pendulum_problem(directory):
+    """The double pendulum swung up from hanging at rest to UPRIGHT, unbounded, its URDF
+    written to `directory`: jaxdyn's problem `problem`, its parameters `p`, the start `q0`,
+    the guess `guess` (zero torques) and Crocoddyl's problem `reference`."""
+    path = os.path.join(directory, "double_pendulum.urdf")
+    with open(path, "w") as out:
+        out.write(DOUBLE_PENDULUM)
+    tree, p = jaxdyn.from_urdf(path)
+    plant = jaxdyn.Controlled(jaxdyn.ArticulatedBody(tree), input_map=[0, 1])
+    upright = jnp.asarray(UPRIGHT)
+
+    def running(q, u, r, p):
+        return jnp.concatenate([np.sqrt(W_STATE) * (jnp.concatenate([q, u]) - upright),
+                                np.sqrt(W_INPUT) * r])
+
+    def terminal(q, u, p):
+        return np.sqrt(W_FINAL) * (jnp.concatenate([q, u]) - upright)
+
+    problem = jaxdyn.ShootingProblem(plant, running, terminal, num_nodes=N, dt=DT,
+                                     discretisation=jaxdyn.SemiImplicitEuler())
+
+    def state_cost(state, nu):
+        return (crocoddyl.ActivationModelQuad(4),
+                crocoddyl.ResidualModelState(state, UPRIGHT, nu))
+
+    def running_costs(state, nu):
+        return {"state": (*state_cost(state, nu), W_STATE),
+                "input": (crocoddyl.ActivationModelQuad(nu),
+                          crocoddyl.ResidualModelControl(state, nu), W_INPUT)}
+
+    def terminal_costs(state, nu):
+        return {"state": (*state_cost(state, nu), W_FINAL)}
+
+    reference = _crocoddyl_problem(pin.buildModelFromUrdf(path), np.zeros(4), running_costs,
+                                   terminal_costs)
+    return dict(problem=problem, p=p, q0=np.zeros(2), guess=np.zeros((N, 2)),
+                reference=reference)
+
+
+@pytest.fixture(scope="module")
+def panda():
+    case = panda_problem()
+    problem, p, reference = case["problem"], case["p"], case["reference"]
+    q0 = jnp.asarray(case["q0"])
+    guess = case["hold"](q0)
+    solution = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(7), p, inputs=guess,
+                                            solver=jaxdyn.ILQR(tol=TOL))
+    return dict(problem=problem, p=p, q0=q0, guess=guess, solution=solution,
+                reference=reference, weight=W_R, bounds=LIMITS,
+                optimum=_crocoddyl_optimum(reference, guess, bounded=True))
+
+
+@pytest.fixture(scope="module")
+def double_pendulum(tmp_path_factory):
+    case = double_pendulum_problem(str(tmp_path_factory.mktemp("urdf")))
+    problem, p, reference = case["problem"], case["p"], case["reference"]
+    q0, guess = jnp.asarray(case["q0"]), jnp.asarray(case["guess"])
+    solution = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(2), p, inputs=guess,
+                                            solver=jaxdyn.ILQR(tol=TOL))
+    return dict(problem=problem, p=p, q0=q0, guess=guess, solution=solution,
+                reference=reference, weight=W_INPUT, bounds=None,
+                optimum=_crocoddyl_optimum(reference, guess, bounded=False))
+
+
+# The Panda compiles for 40 s to 2 min on two cores: a slow test (python -m pytest -m slow).
+CASES = [pytest.param("panda", marks=pytest.mark.slow), "double_pendulum"]
+
+
+def _states(solution):
+    return np.concatenate([solution.q, solution.u], axis=1)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_same_discrete_dynamics(case, request):
+    """One step of Crocoddyl's Euler model is jaxdyn's semi-implicit Euler step, at nodes of
+    the optimal trajectory and at random states and inputs; the rollouts of Crocoddyl's
+    optimal inputs agree over the horizon."""
+    c = request.getfixturevalue(case)
+    problem, p, reference = c["problem"], c["p"], c["reference"]
+    model, data = reference.runningModels[0], reference.runningDatas[0]
+    n = model.state.nq
+    rng = np.random.default_rng(1)
+    solution = c["solution"]
+    nodes = [(x, r) for x, r in zip(_states(solution)[::17], np.asarray(solution.inputs)[::17])]
+    nodes += [(np.concatenate([rng.uniform(-2, 2, n), rng.normal(size=n)]),
+               rng.normal(size=n) * 5) for _ in range(3)]
+    step = jax.jit(lambda x, r: problem.step(0.0, x, r, p, n))
+    for x, r in nodes:
+        model.calc(data, x, r)
+        theirs = np.array(data.xnext)
+        np.testing.assert_allclose(step(jnp.asarray(x), jnp.asarray(r)), theirs, rtol=0,
+                                   atol=ROUND_OFF * max(1.0, np.max(np.abs(theirs))))
+    inputs = np.array(c["optimum"].us)
+    theirs = np.array(reference.rollout(list(inputs)))
+    ours = problem.rollout(jnp.asarray(theirs[0]), jnp.asarray(inputs), p, n)
+    # N steps carry the round-off of each along.
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-11 * np.max(np.abs(theirs)))
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_same_cost(case, request):
+    """Crocoddyl's total cost Σ Δt ℓ + Φ of jaxdyn's optimal trajectory is jaxdyn's."""
+    c = request.getfixturevalue(case)
+    solution = c["solution"]
+    assert solution.status == 0 and solution.gap == 0
+    theirs = c["reference"].calc(list(_states(solution)), list(np.asarray(solution.inputs)))
+    np.testing.assert_allclose(float(solution.cost), theirs, rtol=ROUND_OFF)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_same_optimum(case, request):
+    """jaxdyn's iLQR reaches Crocoddyl's optimum: the cost to within jaxdyn's stopping
+    tolerance, the inputs to within what that tolerance allows (the module docstring), the
+    same bounds active, the same states, and the same Riccati feedback gains."""
+    c = request.getfixturevalue(case)
+    solution, optimum = c["solution"], c["optimum"]
+    cost = float(solution.cost)
+    excess = TOL * (1 + cost)  # what jaxdyn's stopping test leaves
+    assert optimum.cost - ROUND_OFF * cost <= cost <= optimum.cost + 2 * excess
+    ours, theirs = np.asarray(solution.inputs), np.array(optimum.us)
+    bound = np.sqrt(2 * 2 * excess / (DT * c["weight"]))
+    assert np.linalg.norm(ours - theirs) <= bound
+    # Measured: up to 6e-6 (Panda) and 1e-5 (pendulum), against inputs of 20 and 50 N m.
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(_states(solution), np.array(optimum.xs), rtol=0, atol=1e-5)
+    if c["bounds"] is not None:
+        active = np.abs(ours) >= c["bounds"] * (1 - 1e-12)
+        assert active.any()
+        np.testing.assert_array_equal(active, np.abs(theirs) >= c["bounds"] * (1 - 1e-12))
+    # δr = k + K δx in jaxdyn, δr = −k − K δx in Crocoddyl; rows of active inputs are zero in
+    # both. The gains follow the trajectories (1e-6 apart): measured 3e-5 (Panda) and 7e-6
+    # (pendulum) of the largest gain.
+    gains = -np.array(optimum.K)
+    np.testing.assert_allclose(solution.feedback, gains, rtol=0,
+                               atol=1e-3 * np.max(np.abs(gains)))
+
+
+@pytest.mark.slow  # DDP's program (the dynamics' second derivatives) compiles for 30 s
+def test_ddp_same_optimum(double_pendulum):
+    """jaxdyn's DDP (the dynamics' second derivatives in the model) reaches the same optimum
+    as Crocoddyl's FDDP (Gauss–Newton), its cost Hessians exact instead of Gauss–Newton: the
+    same stationary point."""
+    c = double_pendulum
+    solution = jaxdyn.solve_optimal_control(c["problem"], c["q0"], jnp.zeros(2), c["p"],
+                                            inputs=c["guess"], solver=jaxdyn.DDP(tol=TOL))
+    assert solution.status == 0
+    cost, optimum = float(solution.cost), c["optimum"]
+    assert optimum.cost - ROUND_OFF * cost <= cost <= optimum.cost + 2 * TOL * (1 + cost)
+    np.testing.assert_allclose(solution.inputs, np.array(optimum.us), rtol=0, atol=1e-4)

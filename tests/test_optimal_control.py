@@ -1,0 +1,376 @@
+"""Trajectory optimisation (iLQR, DDP, multiple shooting, MPC) against the discrete Riccati
+equation (SciPy), a quadratic program (SciPy), closed-loop simulation and finite differences
+(float64). The comparison with Crocoddyl on the same problems is tests/test_crocoddyl.py."""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.optimize
+
+import jaxdyn
+from helpers import compiles
+from test_control import CART_POLE, cart_pole_T, cart_pole_V
+
+# -- a chain of two masses and springs, pushed on each mass: linear ---------------------------
+
+CHAIN = dict(m=np.array([1.0, 2.0]), k=np.array([3.0, 1.5]))
+
+
+def chain_T(q, qd, p):
+    return 0.5 * jnp.sum(p["m"] * qd**2)
+
+
+def chain_V(q, p):
+    stretch = jnp.array([q[0], q[1] - q[0]])
+    return 0.5 * jnp.sum(p["k"] * stretch**2)
+
+
+CHAIN_PLANT = jaxdyn.Controlled(jaxdyn.Lagrangian(chain_T, chain_V), input_map=[0, 1])
+STATE_WEIGHTS = np.diag([2.0, 1.0, 0.5, 0.3])
+INPUT_WEIGHTS = np.diag([0.2, 0.1])
+DT = 0.05
+
+
+def chain_matrices():
+    """ẋ = A x + B r of the chain, and its Euler discretisation."""
+    m, k = CHAIN["m"], CHAIN["k"]
+    stiffness = np.array([[k[0] + k[1], -k[1]], [-k[1], k[1]]])
+    a = np.block([[np.zeros((2, 2)), np.eye(2)], [-stiffness / m[:, None], np.zeros((2, 2))]])
+    b = np.vstack([np.zeros((2, 2)), np.diag(1 / m)])
+    return np.eye(4) + DT * a, DT * b
+
+
+def chain_running(q, u, r, p):
+    x = jnp.concatenate([q, u])
+    return 0.5 * (x @ STATE_WEIGHTS @ x + r @ INPUT_WEIGHTS @ r)
+
+
+def test_linear_quadratic_problem_is_the_discrete_riccati_solution():
+    """With the terminal cost ½ xᵀ P x, P the discrete algebraic Riccati equation's solution
+    for the costs Δt Q, Δt R (SciPy), the finite-horizon problem is stationary: every gain is
+    the infinite-horizon LQR gain, the optimal cost ½ x₀ᵀ P x₀, and iLQR solves it in one
+    step (its model is the problem)."""
+    a, b = chain_matrices()
+    riccati = scipy.linalg.solve_discrete_are(a, b, DT * STATE_WEIGHTS, DT * INPUT_WEIGHTS)
+    gain = np.linalg.solve(DT * INPUT_WEIGHTS + b.T @ riccati @ b, b.T @ riccati @ a)
+
+    def terminal(q, u, p):
+        x = jnp.concatenate([q, u])
+        return 0.5 * x @ riccati @ x
+
+    problem = jaxdyn.ShootingProblem(CHAIN_PLANT, chain_running, terminal, num_nodes=40, dt=DT,
+                                     discretisation=jaxdyn.Euler())
+    q0, u0 = jnp.array([0.3, -0.2]), jnp.array([0.1, 0.4])
+    solution = jaxdyn.solve_optimal_control(problem, q0, u0, CHAIN)
+    x0 = np.concatenate([q0, u0])
+    assert int(solution.status) == 0 and int(solution.iterations) == 2  # a step, then the check
+    np.testing.assert_allclose(solution.cost, 0.5 * x0 @ riccati @ x0, rtol=1e-12)
+    np.testing.assert_allclose(solution.feedback, -np.broadcast_to(gain, (40, 2, 4)),
+                               atol=1e-11)
+    # The closed loop x_{k+1} = (A − B K) x_k, r_k = −K x_k.
+    x, inputs = x0, []
+    for _ in range(40):
+        inputs.append(-gain @ x)
+        x = (a - b @ gain) @ x
+    np.testing.assert_allclose(solution.inputs, np.array(inputs), atol=1e-12)
+    np.testing.assert_allclose(np.concatenate([solution.q[-1], solution.u[-1]]), x, atol=1e-12)
+
+
+def test_bounded_inputs_solve_the_quadratic_program():
+    """Box-constrained inputs on the linear chain: the optimum is that of the convex quadratic
+    program in the inputs (the states eliminated), solved by SciPy's L-BFGS-B; the active
+    bounds hold exactly."""
+    a, b = chain_matrices()
+    num, bound = 30, 0.8
+
+    def terminal(q, u, p):
+        x = jnp.concatenate([q, u])
+        return 5.0 * x @ x
+
+    problem = jaxdyn.ShootingProblem(CHAIN_PLANT, chain_running, terminal, num_nodes=num,
+                                     dt=DT, discretisation=jaxdyn.Euler(),
+                                     input_bounds=(-bound, bound))
+    x0 = np.array([1.0, -0.5, 0.0, 0.8])
+    solution = jaxdyn.solve_optimal_control(problem, x0[:2], x0[2:], CHAIN)
+
+    def cost(flat):
+        r, x, total = flat.reshape(num, 2), x0, 0.0
+        for k in range(num):
+            total += DT * 0.5 * (x @ STATE_WEIGHTS @ x + r[k] @ INPUT_WEIGHTS @ r[k])
+            x = a @ x + b @ r[k]
+        return total + 5.0 * x @ x
+
+    reference = scipy.optimize.minimize(
+        cost, np.zeros(2 * num), method="L-BFGS-B", bounds=[(-bound, bound)] * (2 * num),
+        options=dict(ftol=1e-16, gtol=1e-12, maxiter=5000))
+    assert int(solution.status) == 0
+    assert np.sum(np.isclose(np.abs(solution.inputs), bound, rtol=0, atol=1e-12)) >= 2
+    assert np.all(np.abs(solution.inputs) <= bound)
+    np.testing.assert_allclose(solution.cost, reference.fun, rtol=1e-9)
+    np.testing.assert_allclose(solution.inputs.ravel(), reference.x, atol=2e-5)
+
+
+# -- the cart-pole, swung up -------------------------------------------------------------------
+
+CART_PLANT = jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), input_map=[0])
+FORCE = 6.0  # active on about a fifth of the nodes
+
+
+def swing_up_running(q, u, r, p):
+    return 1e-2 * r @ r + 0.1 * q[0] ** 2
+
+
+def swing_up_terminal(q, u, p):
+    return 1e3 * (q @ q + u @ u)
+
+
+SWING_UP = jaxdyn.ShootingProblem(CART_PLANT, swing_up_running, swing_up_terminal,
+                                  num_nodes=100, dt=0.025, input_bounds=(-FORCE, FORCE))
+HANGING = jnp.array([0.0, np.pi])
+
+
+@pytest.fixture(scope="module")
+def swing_up():
+    return jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE)
+
+
+def test_cart_pole_swings_up_and_its_gains_hold_it(swing_up):
+    """From hanging to upright in 2.5 s with |F| ≤ 6 N (the bound active: the unbounded
+    optimum pushes up to 8.1 N). The plan is the dynamics: its inputs, held over each
+    interval and integrated by `simulate` (adaptive Dopri8, not the planner's RK4), retrace
+    its states to RK4's error; and its Riccati gains, as feedback, bring the pole upright."""
+    assert bool(swing_up.converged) and float(swing_up.gap) == 0.0
+    assert np.all(np.abs(swing_up.inputs) <= FORCE)
+    assert np.sum(np.abs(swing_up.inputs) == FORCE) >= 10
+    np.testing.assert_allclose(swing_up.q[-1], 0.0, atol=2e-3)
+    np.testing.assert_allclose(swing_up.u[-1], 0.0, atol=2e-3)
+
+    def held(t):
+        return swing_up.inputs[jnp.clip(jnp.floor(t / 0.025 + 1e-9).astype(int), 0, 99)]
+
+    ts = swing_up.ts[:41]  # the first second: the hanging pole's motion, stable
+    replay = jaxdyn.simulate(CART_PLANT, HANGING, jnp.zeros(2), CART_POLE, t1=1.0, ts=ts,
+                             inputs=held, rtol=1e-11, atol=1e-11, max_steps=100_000)
+    np.testing.assert_allclose(replay.q, swing_up.q[:41], atol=1e-5)  # RK4 at Δt = 0.025
+    closed = jaxdyn.simulate(CART_PLANT, HANGING, jnp.zeros(2), CART_POLE, t1=2.5,
+                             ts=swing_up.ts, inputs=swing_up.policy((-FORCE, FORCE)),
+                             rtol=1e-10, atol=1e-10, save=("q", "u", "inputs"))
+    # (the feedback acts continuously, the plan's inputs were held: 1.3e-3 apart)
+    np.testing.assert_allclose(closed.q, swing_up.q, atol=3e-3)
+    assert np.all(np.abs(closed.inputs) <= FORCE)
+
+
+# Solves converged to round-off, the references of the finite differences: DDP from the optimum
+# converges quadratically (iLQR's linear convergence would leave the inputs ~10⁻⁶ off).
+TO_ROUND_OFF = jaxdyn.DDP(tol=1e-15)
+
+
+def test_gradients_of_the_optimum_against_finite_differences(swing_up):
+    """d J*/d p and d r*/d x₀ by the implicit function theorem (the bound active on 18
+    nodes) against central differences of solves converged to round-off. (The derivatives of
+    the inputs are as accurate as the solve they start from: at iLQR's default tolerance
+    they are 2·10⁻⁴ off, the cost's derivative is not, being stationary.)"""
+    def optimum(m, l, angle, solver=jaxdyn.ILQR(tol=1e-15, max_iterations=1000)):
+        p = dict(CART_POLE, m=m, l=l)
+        solution = jaxdyn.solve_optimal_control(SWING_UP, jnp.array([0.0, angle]), jnp.zeros(2),
+                                                p, solver=solver, inputs=swing_up.inputs)
+        return solution.cost, solution.inputs[10, 0]
+
+    point = (0.1, 0.5, np.pi)
+    gradients = jax.jacobian(optimum, argnums=(0, 1, 2))(*point)
+    h = 1e-5
+    for i in range(3):
+        up = [v + h * (j == i) for j, v in enumerate(point)]
+        down = [v - h * (j == i) for j, v in enumerate(point)]
+        (cost_up, input_up), (cost_down, input_down) = (optimum(*up, TO_ROUND_OFF),
+                                                        optimum(*down, TO_ROUND_OFF))
+        np.testing.assert_allclose(gradients[0][i], (cost_up - cost_down) / (2 * h), rtol=1e-7)
+        # (the inputs' round-off, ~10⁻¹², over h: a few 10⁻⁷ of the difference quotient)
+        np.testing.assert_allclose(gradients[1][i], (input_up - input_down) / (2 * h),
+                                   rtol=1e-5)
+
+
+def test_ddp_converges_quadratically_where_ilqr_converges_linearly(swing_up):
+    """From near the optimum, DDP (the dynamics' second derivatives in its model) meets a
+    tolerance of 10⁻¹⁵ in a few iterations; iLQR (Gauss–Newton) needs ten times as many; both
+    reach the same optimum."""
+    start = swing_up.inputs + 0.01 * jnp.sin(jnp.arange(100.0))[:, None]
+    ddp = jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE,
+                                       solver=TO_ROUND_OFF, inputs=start)
+    ilqr = jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE,
+                                        solver=jaxdyn.ILQR(tol=1e-15, max_iterations=1000),
+                                        inputs=start)
+    assert bool(ddp.converged) and int(ddp.iterations) <= 5
+    assert bool(ilqr.converged) and int(ilqr.iterations) >= 10 * int(ddp.iterations)
+    np.testing.assert_allclose(ddp.cost, ilqr.cost, rtol=1e-13)
+    np.testing.assert_allclose(ddp.inputs, ilqr.inputs, atol=1e-6)
+
+
+def test_a_batch_of_swing_ups_is_one_program(swing_up):
+    """`jax.vmap` over initial angles: one compiled program, each member its own solve."""
+    angles = jnp.array([np.pi, np.pi - 0.2, np.pi + 0.3])
+
+    def cost(angle):
+        return jaxdyn.solve_optimal_control(SWING_UP, jnp.array([0.0, angle]), jnp.zeros(2),
+                                            CART_POLE).cost
+
+    batched = jax.jit(jax.vmap(cost))
+    with compiles() as count:
+        costs = batched(angles)
+    assert count() == 1
+    np.testing.assert_allclose(costs[0], swing_up.cost, rtol=1e-12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(costs[1], cost(angles[1]), rtol=1e-10)
+
+
+def test_an_infeasible_start_closes_its_gaps():
+    """Multiple shooting from states on a straight line from hanging to upright (far from any
+    trajectory) with zero inputs: the defects close and the pole swings up."""
+    line = jnp.linspace(0.0, 1.0, 101)[:, None]
+    states = (HANGING[None] * (1 - line), jnp.zeros((101, 2)))
+    solution = jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE,
+                                            states=states)
+    assert bool(solution.converged) and float(solution.gap) == 0.0
+    np.testing.assert_allclose(solution.q[-1], 0.0, atol=2e-3)
+    assert np.all(np.abs(solution.inputs) <= FORCE)
+
+
+def test_mpc_swings_up_and_holds_the_pole_of_a_heavier_plant():
+    """Receding-horizon control (a 1.5 s horizon, at most 10 iterations a step, warm-started)
+    from hanging, of a plant whose pole is 20 % heavier than the model's: the pole comes up
+    and stays, within the force bound."""
+    problem = jaxdyn.ShootingProblem(CART_PLANT, swing_up_running, swing_up_terminal,
+                                     num_nodes=60, dt=0.025, input_bounds=(-10.0, 10.0))
+    closed = jaxdyn.model_predictive_control(
+        problem, HANGING, jnp.zeros(2), CART_POLE, num_steps=200,
+        plant_parameters=dict(CART_POLE, m=0.12))
+    assert closed.q.shape == (201, 2) and closed.inputs.shape == (200, 1)
+    np.testing.assert_allclose(closed.q[-20:], 0.0, atol=2e-3)
+    np.testing.assert_allclose(closed.u[-20:], 0.0, atol=2e-3)
+    assert np.all(np.abs(closed.inputs) <= 10.0)
+    assert np.all(np.asarray(closed.status) != 2)
+
+
+# -- the double pendulum: DDP against iLQR -----------------------------------------------------
+
+PENDULUM = dict(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=9.81)
+
+
+def double_pendulum_T(q, qd, p):
+    """Point masses; angles from the upward vertical."""
+    v1 = p["l1"] * qd[0] * jnp.array([jnp.cos(q[0]), -jnp.sin(q[0])])
+    v2 = v1 + p["l2"] * qd[1] * jnp.array([jnp.cos(q[1]), -jnp.sin(q[1])])
+    return 0.5 * p["m1"] * v1 @ v1 + 0.5 * p["m2"] * v2 @ v2
+
+
+def double_pendulum_V(q, p):
+    h1 = p["l1"] * jnp.cos(q[0])
+    return p["g"] * (p["m1"] * h1 + p["m2"] * (h1 + p["l2"] * jnp.cos(q[1])))
+
+
+def test_double_pendulum_swings_up_and_is_held():
+    """Both joints driven (|τ| ≤ 15 N m) from hanging: the plan ends upright, and its Riccati
+    gains as feedback in `simulate` hold the pendulum there a second past the horizon."""
+    plant = jaxdyn.Controlled(jaxdyn.Lagrangian(double_pendulum_T, double_pendulum_V),
+                              input_map=[0, 1])
+
+    def running(q, u, r, p):
+        return 1e-2 * r @ r
+
+    def terminal(q, u, p):
+        return 1e3 * (q @ q + u @ u)
+
+    problem = jaxdyn.ShootingProblem(plant, running, terminal, num_nodes=60, dt=0.04,
+                                     input_bounds=(-15.0, 15.0))
+    q0 = jnp.array([np.pi, np.pi])
+    plan = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(2), PENDULUM)
+    assert bool(plan.converged) and np.all(np.abs(plan.inputs) <= 15.0)
+    np.testing.assert_allclose(np.cos(plan.q[-1]), 1.0, atol=1e-5)  # upright, whichever turn
+    held = jaxdyn.simulate(plant, q0, jnp.zeros(2), PENDULUM, t1=3.4, inputs=plan.policy(),
+                           rtol=1e-10, atol=1e-10, ts=jnp.linspace(2.4, 3.4, 11), t0=0.0)
+    np.testing.assert_allclose(np.cos(held.q), 1.0, atol=1e-3)
+
+
+def test_a_constrained_pendulum_reaches_the_optimum_of_its_angle():
+    """A pendulum as a particle (x, y) held on its rod by a holonomic constraint
+    (`Constrained`, multipliers) and as one angle (`Lagrangian`): pushed by a horizontal force
+    from hanging to 0.5 rad at rest, both reach the same optimum (to the constrained
+    integration's drift off the rod, 10⁻⁶)."""
+    def cartesian_T(q, qd, p):
+        return 0.5 * p["m"] * qd @ qd
+
+    def cartesian_V(q, p):
+        return p["m"] * p["g"] * q[1]
+
+    def rod(q, p):
+        return jnp.array([q @ q - p["l"] ** 2])
+
+    def angle_T(q, qd, p):
+        return 0.5 * p["m"] * p["l"] ** 2 * qd[0] ** 2
+
+    def angle_V(q, p):
+        return -p["m"] * p["g"] * p["l"] * jnp.cos(q[0])
+
+    def effort(q, u, r, p):
+        return 1e-2 * r @ r
+
+    def at_rest_at(position, velocity):
+        goal = jnp.array([np.sin(0.5), -np.cos(0.5)])
+        return 1e2 * ((position - goal) @ (position - goal) + velocity @ velocity)
+
+    def cartesian_terminal(q, u, p):
+        return at_rest_at(q, u)
+
+    def angle_terminal(q, u, p):
+        direction = jnp.array([jnp.cos(q[0]), jnp.sin(q[0])])
+        return at_rest_at(p["l"] * jnp.array([jnp.sin(q[0]), -jnp.cos(q[0])]),
+                          p["l"] * u[0] * direction)
+
+    p = dict(m=1.0, g=9.81, l=1.0)
+    particle = jaxdyn.Constrained(
+        jaxdyn.Controlled(jaxdyn.Lagrangian(cartesian_T, cartesian_V), input_map=[0]),
+        holonomic=rod)
+    # The horizontal force F does the work F l cos θ δθ: B = [l cos θ].
+    angle = jaxdyn.Controlled(jaxdyn.Lagrangian(angle_T, angle_V),
+                              input_map=lambda q, p: jnp.array([[p["l"] * jnp.cos(q[0])]]))
+    cartesian = jaxdyn.solve_optimal_control(
+        jaxdyn.ShootingProblem(particle, effort, cartesian_terminal, num_nodes=50, dt=0.04),
+        jnp.array([0.0, -1.0]), jnp.zeros(2), p)
+    minimal = jaxdyn.solve_optimal_control(
+        jaxdyn.ShootingProblem(angle, effort, angle_terminal, num_nodes=50, dt=0.04),
+        jnp.zeros(1), jnp.zeros(1), p)
+    assert bool(cartesian.converged) and bool(minimal.converged)
+    np.testing.assert_allclose(cartesian.cost, minimal.cost, rtol=1e-5)
+    np.testing.assert_allclose(cartesian.inputs, minimal.inputs, atol=1e-4)
+    np.testing.assert_allclose(jnp.arctan2(cartesian.q[:, 0], -cartesian.q[:, 1]),
+                               minimal.q[:, 0], atol=1e-5)
+
+
+# -- errors --------------------------------------------------------------------------------------
+
+def test_problems_and_failures_are_named():
+    uncontrolled = jaxdyn.Lagrangian(cart_pole_T, cart_pole_V)
+    with pytest.raises(ValueError, match="declares no inputs"):
+        jaxdyn.ShootingProblem(uncontrolled, swing_up_running, num_nodes=10, dt=0.1)
+    with pytest.raises(ValueError, match="num_nodes"):
+        jaxdyn.ShootingProblem(CART_PLANT, swing_up_running, num_nodes=0, dt=0.1)
+    with pytest.raises(ValueError, match=r"shape \(100, 1\)"):
+        jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE,
+                                     inputs=jnp.zeros((99, 1)))
+    matrix = jaxdyn.ShootingProblem(CART_PLANT, lambda q, u, r, p: jnp.outer(q, q),
+                                    num_nodes=10, dt=0.1)
+    with pytest.raises(ValueError, match="scalar or a residual vector"):
+        jaxdyn.solve_optimal_control(matrix, HANGING, jnp.zeros(2), CART_POLE)
+    nan = jaxdyn.ShootingProblem(CART_PLANT, lambda q, u, r, p: jnp.log(q[0] - 1.0),
+                                 num_nodes=10, dt=0.1)
+    with pytest.raises(ValueError, match="not finite"):
+        jaxdyn.solve_optimal_control(nan, HANGING, jnp.zeros(2), CART_POLE)
+    with pytest.warns(jaxdyn.NotConvergedWarning, match="iteration limit"):
+        short = jaxdyn.solve_optimal_control(SWING_UP, HANGING, jnp.zeros(2), CART_POLE,
+                                             solver=jaxdyn.ILQR(max_iterations=3))
+    assert int(short.status) == 1 and not bool(short.converged)
