@@ -210,6 +210,20 @@ def test_ddp_converges_quadratically_where_ilqr_converges_linearly(swing_up):
     np.testing.assert_allclose(ddp.inputs, ilqr.inputs, atol=1e-6)
 
 
+def test_new_values_reuse_the_compiled_solve(swing_up):
+    """A second solve with new values of the same shapes (start, parameters, guess, the
+    problem's t0) compiles nothing."""
+    problem = jaxdyn.ShootingProblem(CART_PLANT, swing_up_running, swing_up_terminal,
+                                     num_nodes=100, dt=0.025, input_bounds=(-FORCE, FORCE),
+                                     t0=1.5)
+    start, rest = jnp.array([0.0, np.pi - 0.1]), jnp.zeros(2)
+    with compiles() as count:
+        again = jaxdyn.solve_optimal_control(problem, start, rest, dict(CART_POLE, m=0.11),
+                                             inputs=swing_up.inputs)
+    assert count() == 0 and bool(again.converged)
+    np.testing.assert_allclose(again.ts[0], 1.5)
+
+
 def test_a_batch_of_swing_ups_is_one_program(swing_up):
     """`jax.vmap` over initial angles: one compiled program, each member its own solve."""
     angles = jnp.array([np.pi, np.pi - 0.2, np.pi + 0.3])
@@ -273,9 +287,11 @@ def double_pendulum_V(q, p):
     return p["g"] * (p["m1"] * h1 + p["m2"] * (h1 + p["l2"] * jnp.cos(q[1])))
 
 
+@pytest.mark.slow  # its own program (a second system): 10 s of compiling
 def test_double_pendulum_swings_up_and_is_held():
-    """Both joints driven (|τ| ≤ 15 N m) from hanging: the plan ends upright, and its Riccati
-    gains as feedback in `simulate` hold the pendulum there a second past the horizon."""
+    """Both joints driven (|τ| ≤ 15 N m) from hanging: the plan ends upright, its Riccati gains
+    as feedback in `simulate` follow it there, and an LQR designed on `jaxdyn.linearise` at the
+    upright (SciPy's Riccati solver) holds it for a second after the horizon."""
     plant = jaxdyn.Controlled(jaxdyn.Lagrangian(double_pendulum_T, double_pendulum_V),
                               input_map=[0, 1])
 
@@ -291,11 +307,24 @@ def test_double_pendulum_swings_up_and_is_held():
     plan = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(2), PENDULUM)
     assert bool(plan.converged) and np.all(np.abs(plan.inputs) <= 15.0)
     np.testing.assert_allclose(np.cos(plan.q[-1]), 1.0, atol=1e-5)  # upright, whichever turn
-    held = jaxdyn.simulate(plant, q0, jnp.zeros(2), PENDULUM, t1=3.4, inputs=plan.policy(),
-                           rtol=1e-10, atol=1e-10, ts=jnp.linspace(2.4, 3.4, 11), t0=0.0)
-    np.testing.assert_allclose(np.cos(held.q), 1.0, atol=1e-3)
+    upright = jnp.round(plan.q[-1] / (2 * np.pi)) * 2 * np.pi
+    model = jaxdyn.linearise(plant, 0.0, upright, jnp.zeros(2), PENDULUM, jnp.zeros(2))
+    a, b = np.asarray(model.A), np.asarray(model.B)
+    gain = np.linalg.solve(np.eye(2), b.T @ scipy.linalg.solve_continuous_are(
+        a, b, np.eye(4), np.eye(2)))
+    follow = plan.policy((-15.0, 15.0))
+
+    def swing_then_hold(t, q, u, p):
+        held = -jnp.asarray(gain) @ jnp.concatenate([q - upright, u])
+        return jnp.where(t < plan.ts[-1], follow(t, q, u, p), held)
+
+    run = jaxdyn.simulate(plant, q0, jnp.zeros(2), PENDULUM, t1=3.4, inputs=swing_then_hold,
+                          rtol=1e-10, atol=1e-10, ts=jnp.linspace(0.0, 3.4, 86))
+    np.testing.assert_allclose(run.q[:61], plan.q, atol=2e-2)  # the continuous feedback
+    np.testing.assert_allclose(run.q[-10:], jnp.broadcast_to(upright, (10, 2)), atol=1e-3)
 
 
+@pytest.mark.slow  # its own program (a constrained system): 10 s of compiling
 def test_a_constrained_pendulum_reaches_the_optimum_of_its_angle():
     """A pendulum as a particle (x, y) held on its rod by a holonomic constraint
     (`Constrained`, multipliers) and as one angle (`Lagrangian`): pushed by a horizontal force

@@ -36,6 +36,8 @@ class OptimalTrajectory(eqx.Module):
     - `status`: 0 converged, 1 stopped at the iteration limit, 2 diverged (`message`).
     - `gap`: the largest defect |F(x_k, r_k) − x_{k+1}| left (0 once feasible).
     - `regularisation`: the final Levenberg–Marquardt μ.
+    - `predicted_decrease`: the decrease of the cost the last backward pass predicted for a
+      full step, the measure of convergence (against `tol` (1 + |J|)).
     """
 
     ts: jax.Array
@@ -49,6 +51,7 @@ class OptimalTrajectory(eqx.Module):
     status: jax.Array
     gap: jax.Array
     regularisation: jax.Array
+    predicted_decrease: jax.Array
 
     @property
     def converged(self):
@@ -183,9 +186,10 @@ def _report(result: OptimalTrajectory):
                          "from a better guess (inputs=, states=).")
     if np.any(status != CONVERGED):
         warnings.warn(f"solve_optimal_control {MESSAGES[int(status.max())]} "
-                      f"({int(np.max(result.iterations))} iterations; predicted decrease "
-                      "still above the tolerance): the trajectory is not an optimum. Raise "
-                      "the solver's max_iterations.", NotConvergedWarning, stacklevel=3)
+                      f"({int(np.max(result.iterations))} iterations; the predicted decrease "
+                      f"{float(np.max(result.predicted_decrease)):.1e} is still above the "
+                      "tolerance): the trajectory is not an optimum. Raise the solver's "
+                      "max_iterations.", NotConvergedWarning, stacklevel=3)
 
 
 @filter_jit
@@ -206,7 +210,8 @@ def _solve(problem, solver, q0, u0, p, inputs, states):
         ts=problem.times(xs.dtype), q=xs[:, :num_q], u=xs[:, num_q:], inputs=rs,
         cost=problem.cost(xs, rs, p, num_q), feedforward=gains.feedforward,
         feedback=gains.feedback, iterations=iterate.iterations, status=iterate.status,
-        gap=jnp.max(jnp.abs(iterate.gaps)), regularisation=iterate.regularisation)
+        gap=jnp.max(jnp.abs(iterate.gaps)), regularisation=iterate.regularisation,
+        predicted_decrease=iterate.decrease)
 
 
 @eqx.filter_custom_vjp

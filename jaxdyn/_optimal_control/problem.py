@@ -14,6 +14,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
@@ -130,7 +131,7 @@ class ShootingProblem(eqx.Module):
     dt: float = eqx.field(static=True)
     discretisation: AbstractDiscretisation = RungeKutta4()
     input_bounds: tuple | None = eqx.field(default=None, static=True)
-    t0: float | jax.Array = 0.0
+    t0: float | jax.Array | np.ndarray = 0.0
     time_dependent: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
@@ -168,7 +169,9 @@ class ShootingProblem(eqx.Module):
         # the same bounds reuses the compiled solver.
         self.input_bounds = None if input_bounds is None else tuple(
             tuple(float(v) for v in jnp.ravel(jnp.asarray(b, float))) for b in input_bounds)
-        self.t0 = t0
+        # A number becomes a NumPy scalar, which the compiled solver takes as an input: a new
+        # t0 (a receding horizon's) then reuses the program instead of compiling another.
+        self.t0 = np.asarray(t0, dtype=float) if isinstance(t0, (int, float)) else t0
         self.time_dependent = time_dependent
 
     # -- the discrete dynamics ------------------------------------------------------------------
