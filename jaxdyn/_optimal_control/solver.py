@@ -219,7 +219,7 @@ def _lowered(mu):
     return jnp.where(mu / 10 < _REGULARISATION[0], 0.0, mu / 10)
 
 
-def _iteration(problem, solver, x_init, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
+def _iteration(problem, solver, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
     xs, rs = iterate.xs, iterate.rs
     expansion = expand(problem, xs, rs, iterate.gaps, p, num_q, exact=solver.second_order)
     second = dynamics_curvature(problem, xs, rs, p, num_q) if solver.second_order else None
@@ -298,4 +298,4 @@ def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolve
                     done=~finite, gains=empty, decrease=jnp.asarray(jnp.inf, rs.dtype))
     return jax.lax.while_loop(
         lambda it: ~it.done,
-        lambda it: _iteration(problem, solver, x_init, lo, hi, p, num_q, it), start)
+        lambda it: _iteration(problem, solver, lo, hi, p, num_q, it), start)
