@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
+from ._custom_jvp import batch_axis_first
 from ._xla import SMALL_LOOPS_ONE_FUNCTION
 
 # States per chunk. Where XLA compiles small loops as one function (`jaxdyn._xla`), one: the
@@ -99,11 +100,11 @@ def chunked_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
         # (linearisable, batched by plain `vmap`); the primal keeps its chunked batching.
         @jax.custom_jvp
         def differentiable(arrays):
-            return inner(arrays)
+            return inner(arrays)  # (batched by `rule`: its batch axis first)
 
         @differentiable.defjvp
         def derivative(primals, tangents):
-            return jax.jvp(evaluate, primals, tangents)
+            return batch_axis_first(jax.jvp(evaluate, primals, tangents))
 
         return differentiable([leaves[i] for i in where])
 

@@ -28,6 +28,8 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 
+from ._custom_jvp import batch_axis_first
+
 #: Up to this many differentiable entries (initial state and parameters) `simulate` carries
 #: forward sensitivities by default; beyond, reverse mode through checkpoints is cheaper.
 MAX_FORWARD = 16
@@ -50,7 +52,7 @@ def with_sensitivities(fn, dynamic, sensitivity_solve=None):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
 def _call(fn, sensitivity_solve, dynamic):
-    return fn(dynamic)
+    return batch_axis_first(fn(dynamic))
 
 
 def _rule(fn, sensitivity_solve, primals, tangents):
@@ -71,7 +73,8 @@ def _rule(fn, sensitivity_solve, primals, tangents):
     flat, unravel = ravel_pytree([leaves[i] for i in active])
     if flat.size == 0:
         inexact, other = outputs(flat)
-        return eqx.combine(inexact, other), _tangents_like(eqx.combine(inexact, other), None)
+        out = eqx.combine(inexact, other)
+        return batch_axis_first((out, _tangents_like(out, None)))
     basis = jnp.eye(flat.size, dtype=flat.dtype)
     solved = None
     if sensitivity_solve is not None:
@@ -90,7 +93,7 @@ def _rule(fn, sensitivity_solve, primals, tangents):
     # ẏ = S ẋ: linear in ẋ, so that reverse mode transposes it to x̄ = Sᵀ ȳ.
     applied = jax.tree_util.tree_map(lambda s: jnp.tensordot(direction, s, axes=1),
                                      sensitivities)
-    return out, _tangents_like(out, applied)
+    return batch_axis_first((out, _tangents_like(out, applied)))
 
 
 _call.defjvp(_rule, symbolic_zeros=True)

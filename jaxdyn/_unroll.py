@@ -39,6 +39,7 @@ import numpy as np
 from jax.extend import core as jex
 
 from ._chunking import chunked_vmap
+from ._custom_jvp import batch_axis_first
 from ._unroll_rules import (
     _ANALYSIS,
     _BUDGET,
@@ -186,10 +187,12 @@ def _straight_line(closed, leaves, limit, dtypes, array_program, treedef):
             size.append(evaluate(closed, leaves, limit, emit=False))
         return size[0]
 
+    # Where the derivative is the array program's, the values come from two programs, which
+    # must agree on where a `vmap` puts its batch axis (`jaxdyn._custom_jvp`).
     # (the name marks it, for `_unroll_rules._is_straight_line`)
     @jax.custom_jvp
     def jaxdyn_straight_line(consts, xs, arrays):
-        return evaluated(consts, xs, limit)
+        return batch_axis_first(evaluated(consts, xs, limit))
 
     @jaxdyn_straight_line.defjvp
     def derivative(primals, tangents):
@@ -203,7 +206,7 @@ def _straight_line(closed, leaves, limit, dtypes, array_program, treedef):
             return jax.tree_util.tree_leaves(
                 fn(*jax.tree_util.tree_unflatten(treedef, full_leaves)))
 
-        return jax.jvp(differentiable, primals, tangents)
+        return batch_axis_first(jax.jvp(differentiable, primals, tangents))
 
     return jaxdyn_straight_line([closed.consts[i] for i in traced],
                                 [leaves[i] for i in inputs], program_arrays)

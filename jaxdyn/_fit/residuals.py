@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from .._custom_jvp import batch_axis_first
 from .._dynamics import AbstractDynamics
 from .._integrate import simulate
 from .experiment import Experiment, MultipleShooting
@@ -257,7 +258,7 @@ def _materialised(problem, flat, unravel):
 
     @jax.custom_jvp
     def residuals(f):
-        return problem.residuals(unravel(f))
+        return batch_axis_first(problem.residuals(unravel(f)))
 
     def r_with_values(f):  # r to differentiate, and both outputs' values from the same pass
         r, observation = problem.residuals(unravel(f))
@@ -269,7 +270,7 @@ def _materialised(problem, flat, unravel):
         jacobian, (r, observation) = jax.jacfwd(r_with_values, has_aux=True)(f)
         dr = jacobian @ df
         # r_obs is the leading block of r: its tangent is the leading block of dr.
-        return (r, observation), (dr, dr[:observation.size])
+        return batch_axis_first(((r, observation), (dr, dr[:observation.size])))
 
     return residuals(flat)
 

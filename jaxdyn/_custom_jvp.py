@@ -1,0 +1,31 @@
+"""Custom JVPs whose function and rule agree on where a `jax.vmap` puts its batch axis.
+
+JAX (0.10) batches a `jax.custom_jvp` met inside a `jax.jit` by tracing the function and the
+rule separately: the outputs are labelled with the batch axes of the *function's* outputs,
+while the rule's outputs are moved to the batch axes of the *rule's* own primal outputs. Where
+the two differ, the derivative taken afterwards (`jax.jvp` or `jax.grad` of the vmapped, jitted
+call) comes back with its axes exchanged, silently: a function that stacks scalars (its batch
+axis last: jaxdyn's straight-line programs) with a rule that computes the same values as an
+array program (batch axis first) returned the transpose of a square batch's tangent. Every
+custom JVP of jaxdyn therefore returns its outputs, from the function and from the rule, with
+the batch axis first (`batch_axis_first`); without `vmap` the added operation is removed by
+XLA.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+def _first(x):
+    if not eqx.is_inexact_array(x) or x.ndim == 0:
+        return x
+    # A concatenation's batching rule moves every operand's batch axis to the front; an empty
+    # operand makes it one (JAX returns a lone operand unchanged) and XLA drops it.
+    empty = jnp.zeros((0,) + x.shape[1:], x.dtype)
+    return jax.lax.concatenate([x, empty], 0)
+
+
+def batch_axis_first(tree):
+    """`tree` with each inexact array's batch axis (under `jax.vmap`) first; the same values."""
+    return jax.tree_util.tree_map(_first, tree)
