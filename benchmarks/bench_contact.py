@@ -8,30 +8,41 @@ model and the integration, as the two libraries do:
 
 - jaxdyn: `jaxdyn.Contact` with `HuntCrossley(1e6, 1.0, friction=0.8)` (compliant, the
   ground's tangential deformation in the state), the articulated-body algorithm, diffrax's
-  adaptive Tsit5 at rtol = atol = 1e-6 (and the default Dopri8 at 1e-10, for one robot);
+  adaptive Tsit5 at rtol = atol = 1e-4 and 1e-6 (the default, Dopri8 at 1e-10, is the
+  reference of the errors);
 - MJX: MuJoCo's soft convex contact (default solref/solimp), its default Euler integrator at
   MuJoCo's default step of 2 ms (`mujoco-mjx`, in the benchmarks' extras).
 
 Printed, per simulated second: one robot (jitted, warm), and per state in a vmapped batch of
-`--batch` robots (default 1024) dropped from different heights; the first call's time (trace
-and compile) in this process; the standing robot's settled vertical force against its weight
-in each, as a check that both simulate the same scene.
+`--batch` robots (default 1024) dropped from different heights, standing and trotting; the
+first call's time (trace and compile) in this process; the standing robot's settled vertical
+force against its weight in each, as a check that both simulate the same scene.
 
-Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0]
+Also the error of each after 1 s of the trot, against its own library's converged solution
+(the models differ): MJX's default step trades accuracy for speed, so a comparison per state
+says at which accuracy it holds.
+
+Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0] [--record]
 """
 
 import argparse
+import os
 import re
 import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-import jax
-
-# A large vmapped batch can wedge on jaxlib 0.10: its batched LAPACK kernels (MJX's Cholesky
+# A large vmapped batch wedges on jaxlib 0.10: its batched LAPACK kernels (MJX's Cholesky
 # factorisations) split their batch into tasks on XLA's intra-op thread pool and wait for
 # them, and two such kernels running at once hold every thread of a 2-core machine's pool
-# (benchmarks/LOG.md, "Why the 1024 runs stall"); jaxlib 0.11.2 builds that path out.
+# (benchmarks/LOG.md, "Why the 1024 runs stall"). The kernels split nothing when the pool has
+# one thread, which PJRT_NPROC sets (read when JAX starts its CPU client); both libraries run
+# under it. MJX at a batch of 64, 1 s standing: 37.8 ms/s per state with two threads, 33.8
+# with one (within the shared machine's noise).
+os.environ.setdefault("PJRT_NPROC", "1")
+
+import jax
+
 # Dispatching synchronously keeps each row printed as soon as it is measured.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 
@@ -165,10 +176,43 @@ def mjx_run(model, seconds):
     return run
 
 
+def errors_after_a_trot(seconds):
+    """Each setting's error after `seconds` of the trot from standing height, against its own
+    library's converged solution of its own model (the two contact models differ, so each is
+    measured against itself): jaxdyn's default solver (Dopri8 at rtol = atol = 1e-10), MJX's
+    Euler at 0.1 ms. The base's position error (m)."""
+    start = upright.at[2].set(standing_height)
+    out = {}
+    reference = jax.jit(jaxdyn_run(seconds, diffrax.Dopri8(), 1e-10))(start, 0.2)[0]
+    for name, tol in JAXDYN.items():
+        q = jax.jit(jaxdyn_run(seconds, diffrax.Tsit5(), tol))(start, 0.2)[0]
+        out[name] = float(jnp.linalg.norm(q[:3] - reference[:3]))
+    try:
+        model, _ = mujoco_model()
+    except ImportError:
+        return out
+    finest = model.opt.timestep
+    model.opt.timestep = 1e-4
+    reference = jax.jit(mjx_run(model, seconds))(start, 0.2)[0]
+    model.opt.timestep = finest
+    q = jax.jit(mjx_run(model, seconds))(start, 0.2)[0]
+    out[MJX] = float(jnp.linalg.norm(q[:3] - reference[:3]))
+    return out
+
+
+# jaxdyn's settings: Tsit5 at two tolerances (the default, Dopri8 at 1e-10, is the reference
+# of the errors); MJX's own default integrator and step.
+JAXDYN = {"jaxdyn Tsit5 1e-4": 1e-4, "jaxdyn Tsit5 1e-6": 1e-6}
+MJX = "MJX Euler 2 ms"
+
+
 def main():
+    from _results import Recorder
+
     parser = argparse.ArgumentParser()
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--seconds", type=float, default=1.0)
+    parser.add_argument("--record", action="store_true")
     args = parser.parse_args()
     seconds, batch = args.seconds, args.batch
     heights = standing_height + 0.02 + 0.08 * jnp.linspace(0.0, 1.0, batch)
@@ -176,19 +220,19 @@ def main():
     print(f"ANYmal-C, {seconds} s simulated, batch of {batch}; CPU: {jax.devices()[0]}")
     print(f"weight {weight:.2f} N, standing height {standing_height:.4f} m\n")
 
-    runs = {"jaxdyn Tsit5 1e-6": jaxdyn_run(seconds, diffrax.Tsit5(), 1e-6)}
+    runs = {name: jaxdyn_run(seconds, diffrax.Tsit5(), tol) for name, tol in JAXDYN.items()}
     try:
         model, joints = mujoco_model()
         assert len(joints) == 12
         # MuJoCo's qpos: base position, quaternion (w, x, y, z), joints: jaxdyn's order.
-        runs["MJX Euler 2 ms"] = mjx_run(model, seconds)
+        runs[MJX] = mjx_run(model, seconds)
     except ImportError as error:
         print(f"(MJX not installed: {error}; pip install -e '.[benchmarks]')")
     print(f"{'':22s} {'first':>7s} {'first':>7s} {'standing':>9s} {'trotting':>9s} "
-          f"{'batch':>10s}  settled vertical force")
+          f"{'batch':>10s} {'batch trot':>10s}  settled vertical force")
     print(f"{'':22s} {'one':>7s} {'batch':>7s} {'ms/s':>9s} {'ms/s':>9s} {'ms/s/state':>10s}"
-          f"  one, batch median (N)    steps", flush=True)
-    rows = []
+          f" {'ms/s/state':>10s}  one, batch median (N)    steps", flush=True)
+    rows = {}
     for name, run in runs.items():  # (each row printed as soon as it is measured)
         one = jax.jit(run)
         many = jax.jit(jax.vmap(run, in_axes=(0, None)))
@@ -200,15 +244,41 @@ def main():
         start = time.perf_counter()
         qs, forces, _ = jax.block_until_ready(many(q0s, 0.0))
         per_state = (time.perf_counter() - start) / batch
-        rows.append((name, first, first_batch, single / seconds, trot / seconds,
-                     per_state / seconds, float(force), float(jnp.median(forces)), int(steps)))
-        name, first, first_batch, single, trot, per_state, f1, fb, steps = rows[-1]
-        print(f"{name:22s} {first:6.1f}s {first_batch:6.1f}s {1e3 * single:9.2f} "
-              f"{1e3 * trot:9.2f} {1e3 * per_state:10.3f}  {f1:8.2f} {fb:8.2f}     {steps}",
-              flush=True)
-    if len(rows) == 2:
-        print(f"\nratio jaxdyn / MJX per state in the batch: {rows[0][5] / rows[1][5]:.2f}; "
-              f"one robot standing: {rows[0][3] / rows[1][3]:.2f}")
+        trot_state = timed(many, q0s, 0.2) / batch
+        rows[name] = dict(first=first, first_batch=first_batch, single=single / seconds,
+                          trot=trot / seconds, batch=per_state / seconds,
+                          batch_trot=trot_state / seconds)
+        print(f"{name:22s} {first:6.1f}s {first_batch:6.1f}s {1e3 * single / seconds:9.2f} "
+              f"{1e3 * trot / seconds:9.2f} {1e3 * per_state / seconds:10.3f} "
+              f"{1e3 * trot_state / seconds:10.3f}  {float(force):8.2f} "
+              f"{float(jnp.median(forces)):8.2f}     {int(steps)}", flush=True)
+    errors = errors_after_a_trot(seconds)
+    print("\nbase position error after the trot, each against its own converged solution: "
+          + ", ".join(f"{name} {error:.1e} m" for name, error in errors.items()))
+
+    recorder = Recorder("contact")
+    for name, row in rows.items():
+        recorder.add("first call, one robot (trace, compile, 1 s simulated)", name,
+                     row["first"], "s", 10.0 if name != MJX else None)
+        recorder.add(f"first call, batch of {batch} (trace, compile, run)", name,
+                     row["first_batch"], "s")
+        recorder.add("one robot standing, ms per simulated s", name, 1e3 * row["single"], "ms")
+        recorder.add("one robot trotting, ms per simulated s", name, 1e3 * row["trot"], "ms")
+        recorder.add(f"standing, batch of {batch}: ms per simulated s per state", name,
+                     1e3 * row["batch"], "ms")
+        recorder.add(f"trotting, batch of {batch}: ms per simulated s per state", name,
+                     1e3 * row["batch_trot"], "ms")
+        if name in errors:
+            recorder.add("base position error after 1 s of trot, against its own converged "
+                         "solution", name, errors[name], "m")
+        if MJX in rows and name != MJX:
+            for key, what in (("batch", "standing"), ("batch_trot", "trotting")):
+                ratio = row[key] / rows[MJX][key]
+                recorder.add(f"{what}, batch of {batch}: per state / MJX's", name, ratio, "×",
+                             1.0)
+                print(f"{name}: {what} per state in the batch / MJX's: {ratio:.2f}")
+    if args.record:
+        recorder.write()
 
 
 if __name__ == "__main__":

@@ -176,6 +176,25 @@ def test_inf_in_u0():
         jaxdyn.simulate(PEND, Q0, np.array([np.inf]), P, t1=1.0)
 
 
+def test_under_a_callers_vmap_the_checked_parameters_stay_shared_and_a_nan_still_raises():
+    """`simulate` checks its inputs inside a caller's `jax.jit(jax.vmap(...))`: values shared
+    by the batch come back shared (tied to the check's batched flag, a robot's parameters
+    became one copy per member, streamed through every step of the solve: twice the run and
+    compile time of ANYmal's vmapped drop in contact), and a member starting at NaN still
+    raises, naming it."""
+    from jaxdyn._errors import check_finite
+
+    qs = jnp.array([[0.3], [0.4]])
+    p = {name: jnp.asarray(value) for name, value in P.items()}
+    shared = jax.vmap(lambda q: check_finite(q0=q, p=p)[1], out_axes=None)(qs)  # (unbatched)
+    assert all(float(shared[name]) == float(p[name]) for name in p)
+    batch = jax.jit(jax.vmap(lambda q: jaxdyn.simulate(PEND, q, U0, P, t1=0.2).q[-1]))
+    np.testing.assert_allclose(batch(qs)[:, 0], [jaxdyn.simulate(PEND, q, U0, P, t1=0.2).q[-1, 0]
+                                                 for q in qs], rtol=1e-12)
+    with pytest.raises(Exception, match=r"q0 contains NaN or inf"):
+        jax.block_until_ready(batch(jnp.array([[0.3], [jnp.nan]])))
+
+
 def test_nan_in_a_parameter_names_the_leaf():
     system = jaxdyn.Lagrangian(_kinetic, lambda q, p: 0.5 * p["k"] * q[0] ** 2)
     with pytest.raises(RuntimeError, match=r"p\['k'\] contains NaN or inf"):
