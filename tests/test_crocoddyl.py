@@ -363,3 +363,24 @@ def test_ddp_same_optimum(double_pendulum):
     cost, optimum = float(solution.cost), c["optimum"]
     assert optimum.cost - ROUND_OFF * cost <= cost <= optimum.cost + 2 * TOL * (1 + cost)
     np.testing.assert_allclose(solution.inputs, np.array(optimum.us), rtol=0, atol=1e-4)
+
+
+@pytest.mark.slow  # the Panda's solve and its implicit-function derivative compile for 2 min
+def test_the_pandas_optimal_cost_differentiated_by_a_links_mass():
+    """dJ*/dm of the Panda's reach with respect to its last link's mass, through the solve's
+    implicit-function derivative, equals central differences of J*: its torque cost holds
+    the gravity torques `forcing(q, p)` at every node, vmapped over the nodes (whose tangent
+    with respect to p once came back with the nodes' and joints' axes exchanged)."""
+    case = panda_problem()
+    problem, p, q0 = case["problem"], case["p"], jnp.asarray(case["q0"])
+    guess = case["hold"](q0)
+
+    def optimal_cost(mass):
+        link = dict(p["panda_link7"], mass=mass)
+        return jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(7),
+                                            {**p, "panda_link7": link}, inputs=guess).cost
+
+    mass, h = jnp.asarray(p["panda_link7"]["mass"]), 1e-4
+    central = (optimal_cost(mass + h) - optimal_cost(mass - h)) / (2 * h)
+    # measured: 0.00976597 against 0.00976596
+    np.testing.assert_allclose(jax.grad(optimal_cost)(mass), central, rtol=1e-5)
