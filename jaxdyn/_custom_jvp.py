@@ -7,9 +7,11 @@ the two differ, the derivative taken afterwards (`jax.jvp` or `jax.grad` of the 
 call) comes back with its axes exchanged, silently: a function that stacks scalars (its batch
 axis last: jaxdyn's straight-line programs) with a rule that computes the same values as an
 array program (batch axis first) returned the transpose of a square batch's tangent. Every
-custom JVP of jaxdyn therefore returns its outputs, from the function and from the rule, with
-the batch axis first (`batch_axis_first`); without `vmap` the added operation is removed by
-XLA.
+custom JVP of jaxdyn whose rule computes its values by another program than its function
+therefore returns its outputs, from the function and from the rule, with the batch axis first
+(`batch_axis_first`); without `vmap` XLA removes the added operation. (A rule that computes
+its values by the function itself, as the accelerations of optimal control's dynamics do,
+agrees with it by construction.)
 """
 
 import equinox as eqx
