@@ -37,7 +37,7 @@ plant's `simulate` over the interval; jaxdyn only);
 a batch of perturbed starts (Panda: joint angles ± 0.1 rad, 64 of them; pendulum ± 0.3 rad,
 64 and 1024) solved by `jax.jit(jax.vmap(...))` in one program against Crocoddyl solving them
 one after another, per problem, with the median of the costs' relative differences. Under
-`vmap` every problem runs as many iterations as the slowest of the batch.
+`vmap` jaxdyn too solves the problems one after another, each with its own iterations.
 
 The cart-pole is left out: Crocoddyl has no cart-pole action model in C++ (its examples write
 one in Python, whose callbacks per node would time Python, not Crocoddyl).
@@ -208,7 +208,7 @@ def batch(case, size, recorder):
     print(f"\n{name}: batch of {size} (first call {first:.1f} s; {len(samples['jaxdyn'])} "
           "rounds)")
     print(f"  jaxdyn    converged {np.sum(status == 0)}/{size}, iterations median "
-          f"{statistics.median(iterations):.0f}, max {iterations.max()} (the batch's), "
+          f"{statistics.median(iterations):.0f}, max {iterations.max()}, "
           f"{ours_t * 1e3:8.3f} ms per problem")
     print(f"  Crocoddyl iterations median {statistics.median(reference[:, 1]):.0f}, max "
           f"{reference[:, 1].max():.0f}, {theirs_t * 1e3:8.3f} ms per problem")

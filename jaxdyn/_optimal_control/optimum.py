@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._chunking import chunked_vmap
 from .._compile import filter_jit
 from .._state import check_vector, numbers_as_arrays, under_a_trace
 from .problem import ShootingProblem
@@ -129,7 +130,7 @@ def solve_optimal_control(problem: ShootingProblem, q0, u0, p=None, *, inputs=No
     **Returns:** a `jaxdyn.OptimalTrajectory`.
 
     Pure JAX: `jax.vmap` solves a batch of problems (initial states, targets or parameters
-    in p) in one program; `jax.grad` of the optimal trajectory or cost with respect to q0, u0
+    in p) in one program, one problem after another, each with its own iterations; `jax.grad` of the optimal trajectory or cost with respect to q0, u0
     and p is exact at the optimum by the implicit function theorem (one more Riccati sweep,
     not the solver's iterations unrolled), and as accurate as the solve: the derivative of the
     optimal cost is insensitive to the tolerance (the cost is stationary), those of the
@@ -217,7 +218,16 @@ def _solve(problem, solver, q0, u0, p, inputs, states):
 @eqx.filter_custom_vjp
 def _optimum(theta, problem, solver, xs, rs, num_q, feasible):
     x_init, p = theta
-    return iterate_to_optimum(problem, solver, x_init, p, xs, rs, num_q, feasible=feasible)
+
+    def solve(problem, solver, x_init, p, xs, rs):
+        return iterate_to_optimum(problem, solver, x_init, p, xs, rs, num_q, feasible=feasible)
+
+    # Under `vmap`, one problem after another (`jaxdyn._chunking`): vmapped whole, every loop
+    # of the solver (iterations, line search, box QP at each node) runs until its slowest
+    # member stops, and a tree's recursions run as whole-batch array code. 64 Panda
+    # problems: 404 ms per problem vmapped whole, 138 one after another (a single solve:
+    # 133); 1024 double pendulums 1.64 and 1.15 ms.
+    return chunked_vmap(solve)(problem, solver, x_init, p, xs, rs)
 
 
 @_optimum.def_fwd
