@@ -130,8 +130,9 @@ def solve_optimal_control(problem: ShootingProblem, q0, u0, p=None, *, inputs=No
     **Returns:** a `jaxdyn.OptimalTrajectory`.
 
     Pure JAX: `jax.vmap` solves a batch of problems (initial states, targets or parameters
-    in p) in one program, one problem after another, each with its own iterations; `jax.grad` of the optimal trajectory or cost with respect to q0, u0
-    and p is exact at the optimum by the implicit function theorem (one more Riccati sweep,
+    in p) in one program, one problem after another, each with its own iterations;
+    `jax.grad` of the optimal trajectory or cost with respect to q0, u0 and p is exact at the
+    optimum by the implicit function theorem (one more Riccati sweep,
     not the solver's iterations unrolled), and as accurate as the solve: the derivative of the
     optimal cost is insensitive to the tolerance (the cost is stationary), those of the
     inputs and states are not (tighten `tol`, or finish with `jaxdyn.DDP()`, whose
