@@ -192,6 +192,13 @@ def test_gradients_of_the_optimum_against_finite_differences(swing_up):
         # (the inputs' round-off, ~10⁻¹², over h: a few 10⁻⁷ of the difference quotient)
         np.testing.assert_allclose(gradients[1][i], (input_up - input_down) / (2 * h),
                                    rtol=1e-5)
+    # Under `vmap` (each problem solved apart, `jaxdyn._chunking`) the same derivatives.
+    masses = jnp.array([0.1, 0.12])
+    batched = jax.vmap(jax.grad(lambda m: optimum(m, 0.5, np.pi)[0]))(masses)
+    np.testing.assert_allclose(batched[0], gradients[0][0], rtol=1e-10)
+    cost_up, cost_down = (optimum(0.12 + sign * h, 0.5, np.pi, TO_ROUND_OFF)[0]
+                          for sign in (1, -1))
+    np.testing.assert_allclose(batched[1], (cost_up - cost_down) / (2 * h), rtol=1e-7)
 
 
 def test_ddp_converges_quadratically_where_ilqr_converges_linearly(swing_up):
