@@ -120,6 +120,7 @@ def _equilibrium(dynamics, t, q, p, r, values, options):
     size = jnp.max(jnp.abs(residual(solution.value, None)), initial=0.0)
     scale = 1 + jnp.max(jnp.abs(q_out))
     failed = ~(size <= 100 * atol * scale) | ~jnp.all(jnp.isfinite(q_out))
-    q_out = error_if(q_out, [(failed, _NOT_FOUND)],
-                     {"the last iterate q": q_out, "r": r_out, "residual": size})
+    # (both tied to the check: inside a caller's `jax.jit`, r read alone keeps it)
+    q_out, r_out = error_if((q_out, r_out), [(failed, _NOT_FOUND)],
+                            {"the last iterate q": q_out, "r": r_out, "residual": size})
     return q_out, r_out, size, solution.stats["num_steps"]

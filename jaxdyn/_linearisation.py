@@ -204,8 +204,9 @@ def _linearise(dynamics, t, q, u, p, r, output, independent, ranks):
         h = lambda x, r: jnp.atleast_1d(output(t, x[:n], x[n:], r, p))  # noqa: E731
         c_full, d = jax.jacfwd(h, argnums=(0, 1))(x, r)
         c = c_full @ basis
-    a = error_if(a, [(~jnp.all(jnp.isfinite(a)) | ~jnp.all(jnp.isfinite(b)), _NONFINITE)],
-                 (t, q, u))
+    # (both tied to the check: inside a caller's `jax.jit`, B read alone keeps it)
+    a, b = error_if((a, b), [(~jnp.all(jnp.isfinite(a)) | ~jnp.all(jnp.isfinite(b)),
+                              _NONFINITE)], (t, q, u))
     return LinearModel(A=a, B=b, C=c, D=d, basis=basis, num_coordinates=num_coordinates,
                        num_q=n, independent=independent)
 

@@ -193,6 +193,12 @@ def test_equilibria_of_a_pendulum_under_a_constant_torque():
     np.testing.assert_allclose(held.q, [0.6])
     with pytest.raises(RuntimeError, match="(?s)No equilibrium found.*last iterate q"):
         jaxdyn.equilibrium(plant, jnp.array([0.1]), PENDULUM, jnp.array([3 * m * g * l]))
+    # Inside a caller's jit, a failure raises whichever output is read (here the inputs r).
+    held_at = jax.jit(lambda angle: jaxdyn.equilibrium(
+        plant, jnp.array([0.0]), {**PENDULUM, "g": 0.0 * angle + jnp.nan},
+        prescribed={0: angle}).r)
+    with pytest.raises(Exception, match="No equilibrium found"):
+        jax.block_until_ready(held_at(0.6))
 
 
 def test_constrained_pendulum_in_independent_coordinates():
@@ -404,9 +410,15 @@ def test_input_errors_name_the_problem():
         jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), jaxdyn.ForceInput(
             lambda q, p: q, directions=[1.0, 0.0])).input_matrix(0.0, jnp.zeros(2),
                                                                   jnp.zeros(2), CART_POLE)
+    degenerate = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * q[0] ** 2 * qd[0] ** 2)
     with pytest.raises(RuntimeError, match="linearisation is not finite"):
-        jaxdyn.linearise(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * q[0] ** 2 * qd[0] ** 2),
-                         0.0, jnp.zeros(1), jnp.zeros(1))
+        jaxdyn.linearise(degenerate, 0.0, jnp.zeros(1), jnp.zeros(1))
+    # Inside a caller's jit, a failure raises whichever matrix is read (here B).
+    driven = jaxdyn.Controlled(degenerate, input_map=[0])
+    with pytest.raises(Exception, match="linearisation is not finite"):
+        jax.block_until_ready(jax.jit(
+            lambda q: jaxdyn.linearise(driven, 0.0, q, jnp.zeros(1), {}, jnp.zeros(1)).B)(
+                jnp.zeros(1)))
 
 
 def test_rolling_disc_stability_boundary():

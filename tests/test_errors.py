@@ -359,6 +359,23 @@ def test_max_steps_reached_raises():
         jaxdyn.simulate(PEND, Q0, U0, P, t1=10.0, max_steps=5)
 
 
+@pytest.mark.parametrize("read", ["q", "u", "qd", "ts", "dense"])
+def test_a_failed_solve_raises_in_a_callers_jit_whichever_output_is_read(read):
+    """Inside a caller's `jax.jit`, XLA keeps only what the outputs read: each output the
+    caller may read alone (here the states, their rates, the times, the dense solution) is
+    tied to the failure check, so a solve that ran out of steps raises rather than returning
+    the last state it reached as if it were t1's."""
+    save = ("q", "u", "qd")
+
+    def run(q0):
+        sol = jaxdyn.simulate(PEND, q0, U0, P, t1=10.0, max_steps=5, save=save,
+                              dense=read == "dense")
+        return sol.evaluate(np.float64(10.0))[0] if read == "dense" else getattr(sol, read)[-1]
+
+    with pytest.raises(Exception, match=r"The solver took the maximum number of steps"):
+        jax.block_until_ready(jax.jit(run)(Q0))
+
+
 def test_max_steps_reached_without_throw_returns_the_result():
     sol = jaxdyn.simulate(PEND, Q0, U0, P, t1=10.0, max_steps=5, throw=False)
     assert sol.result != jaxdyn.RESULTS.successful

@@ -396,6 +396,26 @@ def test_a_repeated_call_reuses_the_compiled_solve():
     assert len(traced) > count
 
 
+
+def test_a_weakly_typed_parameter_in_a_callers_jit_traces_the_equations_once():
+    """A parameter that reaches `simulate` weakly typed (a Python float passed through the
+    caller's `jax.jit`) traces the user's energy as often as a strongly typed one: the
+    shape check and the solve share one trace of the equations."""
+    def counted(m):  # a new system each time: nothing traced before
+        traced = []
+
+        def kinetic(q, qd, p):
+            traced.append(1)  # runs only while JAX traces
+            return 0.5 * p["m"] * qd @ qd
+
+        oscillator = jaxdyn.Lagrangian(kinetic, lambda q, p: 0.5 * q @ q)
+        run = jax.jit(lambda m: jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1),
+                                                {"m": m}, t1=1.0).q)
+        np.testing.assert_allclose(run(m)[-1], np.cos(1.0), atol=1e-8)
+        return len(traced)
+
+    assert counted(1.0) == counted(np.float64(1.0)) > 0
+
 def test_programs_called_with_values_are_kept_by_the_persistent_compilation_cache(tmp_path):
     """Called with values, `simulate`, `accelerations`, `linearise`, `normal_modes` and
     `equilibrium` compile programs without host callbacks (their checks are read on the

@@ -232,7 +232,7 @@ def _simulate(dynamics, q0, u0, numbers, options):
     p, t0, t1, ts, rtol, atol, dt0 = numbers
     (dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable, lean,
      events, max_events) = options
-    q0, u0, t0, t1 = _checked_start(dynamics, q0, u0, p, t0, t1, solver)
+    q0, u0, p, t0, t1 = _checked_start(dynamics, q0, u0, p, t0, t1, solver)
     # The lean program (called with values) carries no check that calls the host: its
     # invalid arguments only make it fail, and the full program, run then, names them. So it
     # holds no host callback, which also lets JAX's persistent compilation cache keep it.
@@ -296,17 +296,22 @@ def _simulate(dynamics, q0, u0, numbers, options):
     event_record = getattr(solution, "events", None)  # a hybrid solve's (`HybridSolution`)
     if throw and not lean:
         condition = functools.partial(mass_matrix_condition, dynamics, p)
-        # (the record of events is tied to the check too: a caller may read only it)
-        ts_out, event_record = raise_failures(
-            (ts_out, event_record), result, failure, (t0, q0, u0), t1,
-            (t_last, q_last[0], u_last[0]), max_steps, condition,
+        # Every output a caller may read alone is tied to the check: the states and the
+        # records formed from them, the times, the record of events, the dense solution
+        # (under a caller's `jax.jit` XLA keeps only what the outputs read, and a check tied
+        # to none of them would be dropped: a failed solve's last state returned silently).
+        arrays, rest = eqx.partition(solution, eqx.is_inexact_array)  # (its times, states)
+        ts_out, event_record, q, u, arrays = raise_failures(
+            (ts_out, event_record, q, u, arrays if dense else None), result, failure,
+            (t0, q0, u0), t1, (t_last, q_last[0], u_last[0]), max_steps, condition,
             isinstance(solver, AbstractStructurePreserving))
+        solution = eqx.combine(arrays, rest) if dense else solution
     return _solution(dynamics, p, save, solution, ts_out, q, u, result, layout, event_record,
                      dense)
 
 
 def _checked_start(dynamics, q0, u0, p, t0, t1, solver):
-    """(q0, u0, t0, t1) checked (vectors of one dtype, the system's shapes, parameters of
+    """(q0, u0, p, t0, t1) checked (vectors of one dtype, the system's shapes, parameters of
     that dtype) and strongly typed in the state's dtype."""
     q0 = check_vector(q0, "q0")
     u0 = check_vector(u0, "u0")
@@ -321,12 +326,17 @@ def _checked_start(dynamics, q0, u0, p, t0, t1, solver):
     # the equations traced for the shape check are the solve's (a weak type retraces them).
     q0, u0 = jnp.asarray(q0, dtype), jnp.asarray(u0, dtype)
     check_parameter_dtypes(p, dtype)
+    # The parameters too: the checks after this one return them strongly typed, and a
+    # weakly typed leaf (a Python float passed through a caller's `jax.jit`) would retrace
+    # the equations for the solve (ANYmal in contact: 0.6-0.9 s of a first call).
+    p = jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, x.dtype) if eqx.is_inexact_array(x) else x, p)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     _check_shapes(dynamics, t0, q0, u0, p)
     if isinstance(solver, AbstractStructurePreserving):
         solver.check(dynamics, t0, q0, u0, p)
-    return q0, u0, t0, t1
+    return q0, u0, p, t0, t1
 
 
 def _save_at(save, layout, ts, t0, t1, dense, invalid):
