@@ -11,8 +11,9 @@ nonlinear dynamics with a backtracking line search:
 so that a step of length α closes the fraction α of every gap g (Mastalli et al.,
 "Crocoddyl: an efficient and versatile framework for multi-contact optimal control",
 ICRA 2020); from a feasible guess the gaps are zero and this is the classical method. A step
-is taken when the cost falls by at least a tenth of the model's prediction (or, while gaps are
-being closed and the model predicts a rise, rises by at most twice the prediction). The
+is taken when the cost falls by at least a tenth of the model's prediction (or, where the
+model predicts a rise, as it does while gaps are being closed or inputs move onto their
+bounds, rises by at most twice the prediction). The
 Levenberg–Marquardt regularisation μ of Q_rr starts at 0, grows tenfold (from 10⁻⁹) where
 Q_rr + μI is not positive definite or no step is taken, and shrinks tenfold (to 0 below 10⁻⁹)
 where a step of at least ½ is taken (Tassa, Erez
@@ -59,8 +60,8 @@ class ILQR(AbstractTrajectorySolver):
     **Arguments:**
 
     - `max_iterations`: the iteration limit (each backward pass counts one).
-    - `tol`: converged when the trajectory is feasible and the full step's predicted decrease
-      of the cost is below `tol` (1 + |J|).
+    - `tol`: converged when the trajectory is feasible and the full step's predicted change
+      of the cost is below `tol` (1 + |J|) in absolute value.
     """
 
     max_iterations: int = eqx.field(default=200, static=True)
@@ -241,12 +242,18 @@ def _iteration(problem, solver, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
         (iterate.regularisation, iterate.gains, jnp.array(True)))
     iterate = eqx.tree_at(lambda it: it.regularisation, iterate, mu)
     _, _, d1, d2 = linear_rollout(expansion, gains)
-    decrease = -(d1 + 0.5 * d2)
     feasible = jnp.max(jnp.abs(iterate.gaps)) <= 1e-12 * (1 + jnp.max(jnp.abs(xs)))
+    if gains.expected is not None:  # input bounds: box-DDP's model of the step, once the
+        # trajectory is feasible (`riccati`); while gaps remain, the linear rollout's, which
+        # accounts for closing them
+        d1 = jnp.where(feasible, gains.expected[0], d1)
+        d2 = jnp.where(feasible, gains.expected[1], d2)
+    decrease = -(d1 + 0.5 * d2)
     # The predicted decrease measures stationarity only for the Newton step itself: a large μ
-    # shortens the step, and with it the prediction, far from an optimum.
+    # shortens the step, and with it the prediction, far from an optimum. (In absolute value:
+    # box-DDP's model predicts a rise where an input has yet to reach its bound.)
     converged = (gains.ok & feasible & (iterate.regularisation <= _REGULARISATION[0])
-                 & (decrease <= solver.tol * (1 + jnp.abs(iterate.cost))))
+                 & (jnp.abs(decrease) <= solver.tol * (1 + jnp.abs(iterate.cost))))
 
     def step(_):
         new_xs, new_rs, cost, alpha, accepted = _line_search(problem, iterate, gains, d1, d2,
@@ -290,7 +297,8 @@ def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolve
                   value_x=jnp.zeros_like(xs), value_xx=jnp.zeros((big_n + 1, n, n), rs.dtype),
                   free=jnp.ones_like(rs, bool), ok=jnp.array(False),
                   curvature=(jnp.zeros((big_n, n, n), rs.dtype), jnp.zeros((big_n, m, m), rs.dtype),
-                             jnp.zeros((big_n, m, n), rs.dtype)))
+                             jnp.zeros((big_n, m, n), rs.dtype)),
+                  expected=None if lo is None else (jnp.zeros((), rs.dtype),) * 2)
     finite = jnp.isfinite(cost)
     start = Iterate(xs=xs, rs=rs, gaps=gaps, cost=cost,
                     regularisation=jnp.zeros((), rs.dtype),
