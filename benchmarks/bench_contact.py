@@ -15,8 +15,10 @@ model and the integration, as the two libraries do:
 
 Printed, per simulated second: one robot (jitted, warm), and per state in a vmapped batch of
 `--batch` robots (default 1024) dropped from different heights, standing and trotting; the
-first call's time (trace and compile) in this process; the standing robot's settled vertical
-force against its weight in each, as a check that both simulate the same scene.
+first call's time (trace, compile, run): jaxdyn's in a fresh process each, with `simulate` not
+jitted as the contact guide calls it and inside the caller's `jax.jit`, MJX's (always jitted)
+in this process; the standing robot's settled vertical force against its weight in each, as a
+check that both simulate the same scene.
 
 Also the error of each after 1 s of the trot, against its own library's converged solution
 (the models differ): MJX's default step trades accuracy for speed, so a comparison per state
@@ -28,6 +30,8 @@ Run:  python benchmarks/bench_contact.py [--batch 1024] [--seconds 1.0] [--recor
 import argparse
 import os
 import re
+import subprocess
+import sys
 import tempfile
 import time
 import xml.etree.ElementTree as ET
@@ -39,7 +43,10 @@ import xml.etree.ElementTree as ET
 # one thread, which PJRT_NPROC sets (read when JAX starts its CPU client); both libraries run
 # under it. MJX at a batch of 64, 1 s standing: 37.8 ms/s per state with two threads, 33.8
 # with one (within the shared machine's noise).
-os.environ.setdefault("PJRT_NPROC", "1")
+# (Not for a first call timed in a fresh process, `--first-call`: it runs no batch, and a
+# user's process has XLA's default pool.)
+if "--first-call" not in sys.argv:
+    os.environ.setdefault("PJRT_NPROC", "1")
 
 import jax
 
@@ -200,6 +207,22 @@ def errors_after_a_trot(seconds):
     return out
 
 
+def fresh_first_call(tol, way, seconds):
+    """The first call of jaxdyn's run (`way`: "eager", simulate not jitted; "staged", inside
+    `jax.jit`) in a new process, in seconds."""
+    out = subprocess.run([sys.executable, __file__, "--first-call", way, "--tol", str(tol),
+                          "--seconds", str(seconds)], capture_output=True, text=True,
+                         check=True, env={k: v for k, v in os.environ.items()
+                                          if k != "PJRT_NPROC"}).stdout
+    return float(out.strip().splitlines()[-1])
+
+
+def first_call(tol, way, seconds):
+    run = jaxdyn_run(seconds, diffrax.Tsit5(), tol)
+    call = run if way == "eager" else jax.jit(run)
+    print(timed(call, upright.at[2].set(standing_height + 0.02), 0.0))
+
+
 # jaxdyn's settings: Tsit5 at two tolerances (the default, Dopri8 at 1e-10, is the reference
 # of the errors); MJX's own default integrator and step.
 JAXDYN = {"jaxdyn Tsit5 1e-4": 1e-4, "jaxdyn Tsit5 1e-6": 1e-6}
@@ -213,7 +236,11 @@ def main():
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--record", action="store_true")
+    parser.add_argument("--first-call", choices=("eager", "staged"))  # (`fresh_first_call`)
+    parser.add_argument("--tol", type=float)
     args = parser.parse_args()
+    if args.first_call:
+        return first_call(args.tol, args.first_call, args.seconds)
     seconds, batch = args.seconds, args.batch
     heights = standing_height + 0.02 + 0.08 * jnp.linspace(0.0, 1.0, batch)
     q0s = jnp.tile(upright, (batch, 1)).at[:, 2].set(heights)
@@ -236,7 +263,16 @@ def main():
     for name, run in runs.items():  # (each row printed as soon as it is measured)
         one = jax.jit(run)
         many = jax.jit(jax.vmap(run, in_axes=(0, None)))
-        first = timed(one, q0s[0], 0.0)
+        # jaxdyn's first calls each in a fresh process (in this one, the traces of the row
+        # before would be reused): as the contact guide and the quadruped example call it,
+        # `simulate` not jitted (its program without the diagnosis of failures, which only
+        # a failed solve compiles), and inside the caller's own `jax.jit` (the diagnosis
+        # then part of the program). MJX's run is always jitted.
+        if name == MJX:
+            first = first_staged = timed(one, q0s[0], 0.0)
+        else:
+            first, first_staged = (fresh_first_call(JAXDYN[name], way, seconds)
+                                   for way in ("eager", "staged"))
         (q, force, steps) = one(q0s[0], 0.0)
         single = min(timed(one, q0s[0], 0.0) for _ in range(3))
         trot = min(timed(one, upright.at[2].set(standing_height), 0.2) for _ in range(2))
@@ -245,7 +281,8 @@ def main():
         qs, forces, _ = jax.block_until_ready(many(q0s, 0.0))
         per_state = (time.perf_counter() - start) / batch
         trot_state = timed(many, q0s, 0.2) / batch
-        rows[name] = dict(first=first, first_batch=first_batch, single=single / seconds,
+        rows[name] = dict(first=first, first_staged=first_staged, first_batch=first_batch,
+                          single=single / seconds,
                           trot=trot / seconds, batch=per_state / seconds,
                           batch_trot=trot_state / seconds)
         print(f"{name:22s} {first:6.1f}s {first_batch:6.1f}s {1e3 * single / seconds:9.2f} "
@@ -258,8 +295,10 @@ def main():
 
     recorder = Recorder("contact")
     for name, row in rows.items():
-        recorder.add("first call, one robot (trace, compile, 1 s simulated)", name,
-                     row["first"], "s", 10.0 if name != MJX else None)
+        recorder.add("first call, one robot, simulate not jitted (trace, compile, 1 s "
+                     "simulated)", name, row["first"], "s", 10.0 if name != MJX else None)
+        recorder.add("first call, one robot, inside the caller's jax.jit", name,
+                     row["first_staged"], "s")
         recorder.add(f"first call, batch of {batch} (trace, compile, run)", name,
                      row["first_batch"], "s")
         recorder.add("one robot standing, ms per simulated s", name, 1e3 * row["single"], "ms")
