@@ -2,6 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError as _NotInstalled, version as _version
 from . import _xla as _xla
+from ._xla import compiler_options as compiler_options
 
 from . import rotations as rotations
 from ._system.base import AbstractMultibody as AbstractMultibody

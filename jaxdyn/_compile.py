@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax._src import core as jax_core
 
+from . import _xla
 from ._errors import checks_read_on_host
 
 
@@ -160,7 +161,10 @@ class _Entry:
         # call's inputs are not kept alive by the cache.
         for i in dynamic:
             template[i] = None
-        self.compiled = jax.jit(arrays_only, compiler_options=compiler_options)
+        # XLA's CPU switches that a program can carry itself (`jaxdyn._xla`): set whether or
+        # not JAX started before jaxdyn was imported; the caller's own options win.
+        self.compiled = jax.jit(arrays_only, compiler_options={
+            **_xla.compiler_options(), **(compiler_options or {})} or None)
 
 
 def _merge(static, dynamic_positions, dynamic_values):

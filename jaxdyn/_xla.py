@@ -23,7 +23,10 @@ and "Loops as one function"):
   (benchmarks/LOG.md, "Loops as one function").
 
 The switches are read when JAX first starts its CPU backend, so they are set here, before
-jaxdyn creates any array, unless the user chose values of their own.
+jaxdyn creates any array, unless the user chose values of their own. Where JAX started first,
+the programs jaxdyn compiles itself still carry the YNNPACK switch (a program's own option);
+the small-loop threshold cannot be given per program, and jaxdyn warns, with what it costs
+(benchmarks/LOG.md, "The order of the imports").
 """
 
 import os
@@ -42,21 +45,44 @@ SWITCHES = {"xla_cpu_use_fusion_emitters": "false",
             "xla_backend_extra_options":
                 f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"}
 
+# A switch that a single program can also carry (`jax.jit(compiler_options=...)`): every
+# program jaxdyn compiles itself does, so that its speed depends less on the order of the
+# imports. The small-loop threshold, a value of XLA's `xla_backend_extra_options` map, cannot
+# be given per program (XLA refuses a map in a program's options), only at the process's
+# start; and the fusion emitters are worth turning off only together with it (without it, a
+# double pendulum's `simulate` over 100 s ran 5.9 ms with them and 8.0-8.4 without).
+PER_PROGRAM = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
 _unset = [name for name in SWITCHES if name not in os.environ.get("XLA_FLAGS", "")]
 _started = xla_bridge.backends_are_initialized() and xla_bridge.default_backend() == "cpu"
 if _unset:
     os.environ["XLA_FLAGS"] = " ".join(
         [os.environ.get("XLA_FLAGS", "")] + [f"--{name}={SWITCHES[name]}"
                                              for name in _unset]).strip()
-    if _started:
+    if _started and "xla_backend_extra_options" in _unset:
         warnings.warn(
-            "JAX started its backends before jaxdyn was imported, so jaxdyn could not turn "
-            "off XLA's CPU fusion emitters and YNNPACK fusions, nor let XLA compile small "
-            "loops as one function, which run the programs of small systems and of robots' "
-            "recursions several to thousands of times slower on the CPU (a vmapped batch "
-            "above all). Import jaxdyn before the first JAX computation, or start Python with "
-            "XLA_FLAGS=\"" + " ".join(f"--{name}={value}" for name, value in SWITCHES.items())
-            + "\".", stacklevel=2)
+            "JAX started its backends before jaxdyn was imported, so XLA will not compile "
+            "small loops as one function in this process: jaxdyn's own calls on the CPU run "
+            "robots' recursions and small systems' solves up to 1.6x slower (G1's forward "
+            "dynamics over a batch of 1024 1.6x, a double pendulum's simulate over 100 s "
+            "1.35x), and programs you compile yourself with jax.jit up to 2.5x slower (1.7x "
+            "with jax.jit(..., compiler_options=jaxdyn.compiler_options())). Import jaxdyn "
+            "before the first JAX computation, or start Python with XLA_FLAGS=\""
+            + " ".join(f"--{name}={value}" for name, value in SWITCHES.items()) + "\".",
+            stacklevel=2)
+
+
+def compiler_options() -> dict:
+    """XLA's options for a program you compile yourself around jaxdyn's calls, as
+    `jax.jit(f, compiler_options=jaxdyn.compiler_options())`: the switch of XLA's CPU
+    compiler that jaxdyn's own programs carry, YNNPACK fusions off (they run the small
+    batched products of robots' recursions several times slower), unless you set it yourself
+    in `XLA_FLAGS`. Needed only where JAX started before `import jaxdyn` (jaxdyn then warns);
+    otherwise the process already has it. An empty dict off the CPU."""
+    if xla_bridge.default_backend() != "cpu":
+        return {}
+    return {name: value for name, value in PER_PROGRAM.items() if name in _unset}
+
 
 # Whether XLA compiles a loop of small iterations as one function in this process (jaxdyn's
 # switch, in effect): array programs then batch a state at a time (`jaxdyn._chunking`).

@@ -10,6 +10,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 
 import diffrax
 import jax
@@ -585,6 +586,50 @@ def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
                                               f"--xla_cpu_use_fusion_emitters=true {loops}")
     assert done["late"][0] != 0
     assert f'XLA_FLAGS="{ours}"' in done["late"][2]
+
+
+def test_imported_after_jax_started_jaxdyns_programs_still_turn_ynnpack_fusions_off(tmp_path):
+    """Imported after JAX started, jaxdyn cannot set the process's XLA switches, but the
+    programs it compiles itself carry the one a program can (YNNPACK fusions off, which slow
+    a tree's small batched products), and `jaxdyn.compiler_options()` gives it to the
+    caller's own `jax.jit`; without it, XLA fuses the Panda's mass matrix into YNNPACK calls
+    (read in XLA's optimised programs)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["XLA_FLAGS"] = (f"--xla_dump_to={tmp_path} "
+                        "--xla_dump_hlo_module_re=.*(arrays_only|plain_jit|with_options).*")
+    code = textwrap.dedent("""
+        import warnings
+        import jax, jax.numpy as jnp, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        jnp.ones(1)  # JAX starts before jaxdyn is imported
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            import jaxdyn
+        assert any("compiler_options=jaxdyn.compiler_options()" in str(w.message)
+                   for w in caught)
+        tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf(
+            "panda_description/urdf/panda.urdf"))
+        robot = jaxdyn.ArticulatedBody(tree)
+        q = np.tile(np.asarray(tree.neutral_configuration()), (64, 1))
+        u = np.full_like(q, 0.1)
+        robot.mass_matrix(0.0, q, u, p)  # compiled by jaxdyn
+        def plain_jit(q, u):
+            return robot.mass_matrix(0.0, q, u, p)
+        def with_options(q, u):
+            return robot.mass_matrix(0.0, q, u, p)
+        jax.jit(plain_jit)(q, u)
+        jax.jit(with_options, compiler_options=jaxdyn.compiler_options())(q, u)
+    """)
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True)
+    assert run.returncode == 0, run.stderr
+
+    def fused(name):
+        (program,) = tmp_path.glob(f"*jit_{name}.cpu_after_optimizations.txt")
+        return program.read_text().count("ynn_fusion")
+
+    assert fused("plain_jit") > 0
+    assert fused("arrays_only") == fused("with_options") == 0
 
 
 def test_float32_by_default_warns_once_naming_the_switch_unless_chosen():
