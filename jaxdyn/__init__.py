@@ -85,6 +85,7 @@ from ._optimal_control.problem import (
     RungeKutta4 as RungeKutta4,
     SemiImplicitEuler as SemiImplicitEuler,
     ShootingProblem as ShootingProblem,
+    VariationalStep as VariationalStep,
 )
 from ._optimal_control.solver import (
     DDP as DDP,

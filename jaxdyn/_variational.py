@@ -115,15 +115,12 @@ class VariationalIntegrator(AbstractStructurePreserving):
                 "systems) or a diffrax solver.")
 
     def _newton(self, dtype):
-        tol = float(np.sqrt(np.finfo(dtype).eps))
-        rtol = tol if self.rtol is None else self.rtol
-        atol = tol if self.atol is None else self.atol
-        return optx.Newton(rtol=rtol, atol=atol)
+        return newton_method(dtype, self.rtol, self.atol)
 
     def init(self, terms, t0, t1, y0, args):
         dynamics, p, _, _ = args
         q0, u0 = y0
-        return _momentum(dynamics, t0, q0, u0, p)
+        return conjugate_momentum(dynamics, t0, q0, u0, p)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         from ._dynamics import equations_of_motion
@@ -132,23 +129,11 @@ class VariationalIntegrator(AbstractStructurePreserving):
         q0, u0 = y0
         h = t1 - t0
         # The momentum p_k: carried from the last step (exact there), unless the state jumped.
-        momentum0 = jax.lax.cond(made_jump, lambda: _momentum(dynamics, t0, q0, u0, p),
+        momentum0 = jax.lax.cond(made_jump, lambda: conjugate_momentum(dynamics, t0, q0, u0, p),
                                  lambda: solver_state)
         newton = self._newton(q0.dtype)
 
-        def forced(v):
-            """(D₁L_d + F_d^−, D₂L_d + F_d^+) at (q_k, q_{k+1} = q_k + h v)."""
-            q1 = q0 + h * v
-            if self.rule == "midpoint":
-                tm, qm = t0 + h / 2, (q0 + q1) / 2
-                dL_dq, dL_dv = _gradients(dynamics, tm, qm, v, p)
-                half = h / 2 * (dL_dq + dynamics._nonconservative(tm, qm, v, p))
-                return half - dL_dv, half + dL_dv
-            dL_dq0, dL_dv0 = _gradients(dynamics, t0, q0, v, p)
-            dL_dq1, dL_dv1 = _gradients(dynamics, t1, q1, v, p)
-            mean_dv = (dL_dv0 + dL_dv1) / 2
-            return (h / 2 * (dL_dq0 + dynamics._nonconservative(t0, q0, v, p)) - mean_dv,
-                    h / 2 * (dL_dq1 + dynamics._nonconservative(t1, q1, v, p)) + mean_dv)
+        forced = discrete_forces(dynamics, p, t0, t1, q0, self.rule)
 
         # p_k + D₁L_d + F_d^− = 0, solved for the mean velocity v = (q_{k+1} − q_k)/h rather
         # than q_{k+1}: v then carries its full precision, where (q_{k+1} − q_k)/h would
@@ -182,25 +167,8 @@ class VariationalIntegrator(AbstractStructurePreserving):
         return y1, None, dense_info, momentum1, result
 
     def _speeds(self, dynamics, t, q, guess, p, momentum, newton):
-        """q̇ with ∂L/∂q̇(t, q, q̇) = p: one Newton step from `guess` (exact when T is quadratic
-        in q̇, as for every mechanical system: ∂L/∂q̇ is then affine in q̇ with the mass matrix
-        as its slope), then Newton's method only where that left a residual."""
-        def residual(speeds):
-            return _momentum(dynamics, t, q, speeds, p) - momentum
-
-        value, slope = jax.linearize(residual, guess)
-        mass_matrix = jax.vmap(slope)(jnp.eye(guess.shape[0], dtype=guess.dtype))
-        speeds = guess - jnp.linalg.solve(mass_matrix, value)
-        left = residual(speeds)
-        scale = newton.atol + newton.rtol * jnp.max(jnp.abs(momentum))
-        solved = jnp.max(jnp.abs(left)) <= scale
-
-        def iterate():
-            sol = optx.root_find(lambda x, _: residual(x), newton, speeds,
-                                 max_steps=self.max_newton_steps, throw=False)
-            return sol.value, sol.result == optx.RESULTS.successful
-
-        return jax.lax.cond(solved, lambda: (speeds, jnp.array(True)), iterate)
+        return speeds_of_momentum(dynamics, t, q, guess, p, momentum, newton,
+                                  self.max_newton_steps)
 
 
 class StormerVerlet(AbstractStructurePreserving):
@@ -271,11 +239,66 @@ class StormerVerlet(AbstractStructurePreserving):
         return y1, None, dense_info, a1, diffrax.RESULTS.successful
 
 
+def discrete_forces(dynamics, p, t0, t1, q0, rule, force=None):
+    """v ↦ (D₁L_d + F_d^−, D₂L_d + F_d^+) at (q_k, q_{k+1} = q_k + h v), h = t1 − t0, for a
+    `Lagrangian` with its non-conservative forces plus `force(t, q, q̇)` (further
+    generalized forces, such as inputs B r) in the rule's quadrature."""
+    h = t1 - t0
+
+    def forces(t, q, v):
+        total = dynamics._nonconservative(t, q, v, p)
+        return total if force is None else total + force(t, q, v)
+
+    def forced(v):
+        q1 = q0 + h * v
+        if rule == "midpoint":
+            tm, qm = t0 + h / 2, (q0 + q1) / 2
+            dL_dq, dL_dv = _gradients(dynamics, tm, qm, v, p)
+            half = h / 2 * (dL_dq + forces(tm, qm, v))
+            return half - dL_dv, half + dL_dv
+        dL_dq0, dL_dv0 = _gradients(dynamics, t0, q0, v, p)
+        dL_dq1, dL_dv1 = _gradients(dynamics, t1, q1, v, p)
+        mean_dv = (dL_dv0 + dL_dv1) / 2
+        return (h / 2 * (dL_dq0 + forces(t0, q0, v)) - mean_dv,
+                h / 2 * (dL_dq1 + forces(t1, q1, v)) + mean_dv)
+
+    return forced
+
+
+def newton_method(dtype, rtol=None, atol=None):
+    """Newton's method at tolerances √ε of `dtype` unless given: it converges quadratically,
+    so the solution is then exact to round-off."""
+    tol = float(np.sqrt(np.finfo(dtype).eps))
+    return optx.Newton(rtol=tol if rtol is None else rtol, atol=tol if atol is None else atol)
+
+
+def speeds_of_momentum(dynamics, t, q, guess, p, momentum, newton, max_steps):
+    """(q̇ with ∂L/∂q̇(t, q, q̇) = p, whether found): one Newton step from `guess` (exact when
+    T is quadratic in q̇, as for every mechanical system: ∂L/∂q̇ is then affine in q̇ with the
+    mass matrix as its slope), then Newton's method only where that left a residual."""
+    def residual(speeds):
+        return conjugate_momentum(dynamics, t, q, speeds, p) - momentum
+
+    value, slope = jax.linearize(residual, guess)
+    mass_matrix = jax.vmap(slope)(jnp.eye(guess.shape[0], dtype=guess.dtype))
+    speeds = guess - jnp.linalg.solve(mass_matrix, value)
+    left = residual(speeds)
+    scale = newton.atol + newton.rtol * jnp.max(jnp.abs(momentum))
+    solved = jnp.max(jnp.abs(left)) <= scale
+
+    def iterate():
+        sol = optx.root_find(lambda x, _: residual(x), newton, speeds, max_steps=max_steps,
+                             throw=False)
+        return sol.value, sol.result == optx.RESULTS.successful
+
+    return jax.lax.cond(solved, lambda: (speeds, jnp.array(True)), iterate)
+
+
 def _gradients(dynamics, t, q, v, p):
     """(∂L/∂q, ∂L/∂q̇) of a `Lagrangian`."""
     return jax.grad(dynamics._lagrangian, argnums=(1, 2))(t, q, v, p)
 
 
-def _momentum(dynamics, t, q, v, p):
+def conjugate_momentum(dynamics, t, q, v, p):
     """The momentum ∂L/∂q̇ (Legendre transform) of a `Lagrangian`."""
     return jax.grad(dynamics._lagrangian, argnums=2)(t, q, v, p)

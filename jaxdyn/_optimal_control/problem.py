@@ -10,11 +10,13 @@ r held constant over each interval (a zero-order hold), t_k = t0 + k Δt.
 
 import abc
 import functools
+from typing import Literal
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
@@ -23,6 +25,8 @@ from .._form.controlled import Controlled, find_controlled
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
 from .._form.kane import Kane
+from .._variational import (VariationalIntegrator, conjugate_momentum, discrete_forces,
+                             newton_method, speeds_of_momentum)
 
 _RUNNING_ARGS = ("q", "u", "r", "p")
 _TERMINAL_ARGS = ("q", "u", "p")
@@ -33,14 +37,19 @@ class AbstractDiscretisation(eqx.Module):
     with the inputs held over the step."""
 
     @abc.abstractmethod
-    def step(self, field, rates, t, q, u, dt) -> tuple[jax.Array, jax.Array]:
-        """(q_{k+1}, u_{k+1}) from (q_k, u_k); `field(t, q, u) → (q̇, u̇)`, `rates(t, q, u) → q̇`."""
+    def step(self, field, rates, t, q, u, dt, system=None) -> tuple[jax.Array, jax.Array]:
+        """(q_{k+1}, u_{k+1}) from (q_k, u_k); `field(t, q, u) → (q̇, u̇)`, `rates(t, q, u) → q̇`,
+        `system`: (the formulation driven by the step's inputs, p), for methods built from the
+        system itself rather than its equations of motion."""
+
+    def check(self, dynamics) -> None:
+        """Raise a ValueError if this method cannot discretise `dynamics`."""
 
 
 class Euler(AbstractDiscretisation):
     """The explicit Euler method, x_{k+1} = x_k + Δt ẋ(t_k, x_k): first order."""
 
-    def step(self, field, rates, t, q, u, dt):
+    def step(self, field, rates, t, q, u, dt, system=None):
         qd, ud = field(t, q, u)
         return q + dt * qd, u + dt * ud
 
@@ -54,7 +63,7 @@ class SemiImplicitEuler(AbstractDiscretisation):
     Crocoddyl's default integrated action model (`IntegratedActionModelEuler`), which keeps
     a pendulum's energy bounded where the explicit method lets it grow."""
 
-    def step(self, field, rates, t, q, u, dt):
+    def step(self, field, rates, t, q, u, dt, system=None):
         _, ud = field(t, q, u)
         u_next = u + dt * ud
         return q + dt * rates(t, q, u_next), u_next
@@ -67,7 +76,7 @@ class RungeKutta4(AbstractDiscretisation):
         k₁ = ẋ(t, x),  k₂ = ẋ(t + Δt/2, x + Δt k₁/2),  k₃ = ẋ(t + Δt/2, x + Δt k₂/2),
         k₄ = ẋ(t + Δt, x + Δt k₃),   x_{k+1} = x + Δt (k₁ + 2k₂ + 2k₃ + k₄)/6."""
 
-    def step(self, field, rates, t, q, u, dt):
+    def step(self, field, rates, t, q, u, dt, system=None):
         def stage(c, dq, du):
             return field(t + c * dt, q + c * dt * dq, u + c * dt * du)
 
@@ -77,6 +86,64 @@ class RungeKutta4(AbstractDiscretisation):
         k4 = stage(1.0, *k3)
         dq, du = (a + 2 * b + 2 * c + d for a, b, c, d in zip(k1, k2, k3, k4))
         return q + dt / 6 * dq, u + dt / 6 * du
+
+
+class VariationalStep(AbstractDiscretisation):
+    r"""A step of a variational integrator (`jaxdyn.VariationalIntegrator`, Marsden and West,
+    Acta Numerica 10, 2001) of a `jaxdyn.Lagrangian` driven by inputs: the discrete
+    Lagrange–d'Alembert principle with the discrete Lagrangian of `rule`,
+
+        p_k = −D₁L_d(q_k, q_{k+1}) − F_d^−,   p_{k+1} = D₂L_d(q_k, q_{k+1}) + F_d^+,
+
+    the forces F (the Lagrangian's non-conservative forces and the inputs' B r, held over the
+    step) in the same quadrature; the first equation solved for q_{k+1} by Newton's method
+    (differentiated by the implicit function theorem), the speeds from p_{k+1} = ∂L/∂q̇. Second
+    order, symplectic: the discrete dynamics of an optimal control problem whose horizon is
+    long against the motion's periods, where an explicit method's energy drifts (Junge, Marsden
+    and Ober-Blöbaum, "Discrete mechanics and optimal control", IFAC 2005). A step whose Newton
+    iteration does not converge gives NaN (the line search then refuses it).
+
+    **Arguments:**
+
+    - `rule`: "midpoint" (default) or "trapezoidal", as `jaxdyn.VariationalIntegrator`.
+    - `max_newton_steps`: Newton iterations per step.
+    """
+
+    rule: Literal["midpoint", "trapezoidal"] = eqx.field(default="midpoint", static=True)
+    max_newton_steps: int = eqx.field(default=32, static=True)
+
+    def __check_init__(self):
+        VariationalIntegrator(rule=self.rule, max_newton_steps=self.max_newton_steps)
+
+    def check(self, dynamics):
+        if not (isinstance(dynamics, Controlled) and isinstance(dynamics.dynamics, Lagrangian)):
+            raise ValueError(
+                "VariationalStep is built from a Lagrangian L(t, q, q̇): it needs "
+                "jaxdyn.Controlled(jaxdyn.Lagrangian(...), input_map), got "
+                f"{type(dynamics).__name__}"
+                + (f"({type(dynamics.dynamics).__name__})" if isinstance(dynamics, Controlled)
+                   else "") + ". Other formulations: RungeKutta4, SemiImplicitEuler or Euler.")
+
+    def step(self, field, rates, t, q, u, dt, system=None):
+        if system is None:
+            raise ValueError("VariationalStep needs the system (ShootingProblem passes it).")
+        driven, p = system
+        lagrangian = driven.dynamics
+        newton = newton_method(q.dtype)
+        forced = discrete_forces(lagrangian, p, t, t + dt, q, self.rule,
+                                 lambda t, q, v: driven.applied(t, q, v, p))
+        momentum = conjugate_momentum(lagrangian, t, q, u, p)
+        # Solved for the mean velocity v = (q_{k+1} − q_k)/Δt, from the speeds at the middle
+        # of the step (within O(Δt²) of it), as `VariationalIntegrator` does.
+        guess = u + dt / 2 * field(t, q, u)[1]
+        root = optx.root_find(lambda v, _: momentum + forced(v)[0], newton, guess,
+                              max_steps=self.max_newton_steps, throw=False)
+        q_next = q + dt * root.value
+        u_next, speeds_found = speeds_of_momentum(lagrangian, t + dt, q_next, root.value, p,
+                                                  forced(root.value)[1], newton,
+                                                  self.max_newton_steps)
+        found = (root.result == optx.RESULTS.successful) & speeds_found
+        return jnp.where(found, q_next, jnp.nan), jnp.where(found, u_next, jnp.nan)
 
 
 class ShootingProblem(eqx.Module):
@@ -105,8 +172,9 @@ class ShootingProblem(eqx.Module):
       `time_dependent`); None: 0.
     - `num_nodes`: N, the number of intervals.
     - `dt`: Δt, the interval.
-    - `discretisation`: `jaxdyn.RungeKutta4()` (default), `jaxdyn.SemiImplicitEuler()`
-      or `jaxdyn.Euler()`.
+    - `discretisation`: `jaxdyn.RungeKutta4()` (default), `jaxdyn.SemiImplicitEuler()`,
+      `jaxdyn.Euler()` or, for a `Lagrangian`, `jaxdyn.VariationalStep()` (a variational
+      integrator's step).
     - `input_bounds`: (r_lo, r_hi), arrays of shape (k,) or scalars (±inf where unbounded);
       None for unbounded inputs.
     - `t0`: the time of node 0.
@@ -151,8 +219,10 @@ class ShootingProblem(eqx.Module):
             raise ValueError(f"dt must be positive, got {self.dt!r}.")
         if not isinstance(self.discretisation, AbstractDiscretisation):
             raise ValueError("discretisation must be jaxdyn.RungeKutta4(), "
-                             "jaxdyn.SemiImplicitEuler() or jaxdyn.Euler(), got "
+                             "jaxdyn.SemiImplicitEuler(), jaxdyn.Euler() or "
+                             "jaxdyn.VariationalStep(), got "
                              f"{type(self.discretisation).__name__}.")
+        self.discretisation.check(self.dynamics)
         if self.input_bounds is not None and len(self.input_bounds) != 2:
             raise ValueError("input_bounds must be a pair (r_lo, r_hi).")
 
@@ -202,7 +272,7 @@ class ShootingProblem(eqx.Module):
             return driven.coordinate_rates(t, q, u, p)
 
         q, u = self.discretisation.step(field, rates, t, x[:num_q], x[num_q:],
-                                        jnp.asarray(self.dt, x.dtype))
+                                        jnp.asarray(self.dt, x.dtype), system=(driven, p))
         return jnp.concatenate([q, u])
 
     def bounds(self, num_inputs, dtype):
