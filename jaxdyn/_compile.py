@@ -77,6 +77,9 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
             return fallback(*args)
         if entry is None:
             entry = cache[key] = _Entry(fn, treedef, leaves, dynamic, compiler_options)
+        if not jax_core.trace_state_clean():
+            out = entry.nested(*arrays)
+        elif not hasattr(entry, "out_treedef"):
             with gc_paused():  # the first call traces and compiles
                 out = jax.block_until_ready(entry.compiled(*arrays))
         else:
@@ -162,9 +165,12 @@ class _Entry:
         for i in dynamic:
             template[i] = None
         # XLA's CPU switches that a program can carry itself (`jaxdyn._xla`): set whether or
-        # not JAX started before jaxdyn was imported; the caller's own options win.
+        # not JAX started before jaxdyn was imported; the caller's own options win. Called
+        # inside another trace (a derivative of values closed over), the same function
+        # without options: JAX takes options on the outermost program only.
         self.compiled = jax.jit(arrays_only, compiler_options={
             **_xla.compiler_options(), **(compiler_options or {})} or None)
+        self.nested = jax.jit(arrays_only)
 
 
 def _merge(static, dynamic_positions, dynamic_values):

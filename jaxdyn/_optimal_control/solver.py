@@ -298,7 +298,8 @@ def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolve
                   free=jnp.ones_like(rs, bool), ok=jnp.array(False),
                   curvature=(jnp.zeros((big_n, n, n), rs.dtype), jnp.zeros((big_n, m, m), rs.dtype),
                              jnp.zeros((big_n, m, n), rs.dtype)),
-                  expected=None if lo is None else (jnp.zeros((), rs.dtype),) * 2)
+                  expected=None if lo is None else (jnp.zeros((), rs.dtype),
+                                                      jnp.zeros((), rs.dtype)))
     finite = jnp.isfinite(cost)
     start = Iterate(xs=xs, rs=rs, gaps=gaps, cost=cost,
                     regularisation=jnp.zeros((), rs.dtype),
