@@ -304,9 +304,10 @@ def _simulate(dynamics, q0, u0, numbers, options):
         # records formed from them, the times, the record of events, the dense solution
         # (under a caller's `jax.jit` XLA keeps only what the outputs read, and a check tied
         # to none of them would be dropped: a failed solve's last state returned silently).
-        arrays, rest = eqx.partition(solution, eqx.is_inexact_array)  # (its times, states)
+        # (of the dense solution, its interpolant's times and states)
+        arrays, rest = eqx.partition(solution, eqx.is_inexact_array) if dense else (None, None)
         ts_out, event_record, q, u, arrays = raise_failures(
-            (ts_out, event_record, q, u, arrays if dense else None), result, failure,
+            (ts_out, event_record, q, u, arrays), result, failure,
             (t0, q0, u0), t1, (t_last, q_last[0], u_last[0]), max_steps, condition,
             isinstance(solver, AbstractStructurePreserving))
         solution = eqx.combine(arrays, rest) if dense else solution

@@ -174,7 +174,7 @@ def backward_pass(expansion: Expansion, rs, lo, hi, regularisation, *, second_or
         else:
             vx = qx + fb.T @ qrr @ ff + fb.T @ qr + qrx.T @ ff
             vxx = qxx + fb.T @ qrr @ fb + fb.T @ qrx + qrx.T @ fb
-            expected = (jnp.zeros((), rs.dtype), jnp.zeros((), rs.dtype))
+            expected = None
         vxx = 0.5 * (vxx + vxx.T)
         return (vx, vxx), (ff, fb, vx, vxx, node_free, (hxx, hrr, hrx), ok & ok_fb, expected)
 
@@ -188,7 +188,8 @@ def backward_pass(expansion: Expansion, rs, lo, hi, regularisation, *, second_or
                  value_xx=jnp.concatenate([vxx, e.terminal_xx[None]]),
                  free=node_free, curvature=curvature,
                  ok=jnp.all(ok) & jnp.all(jnp.isfinite(vxx)),
-                 expected=(jnp.sum(expected[0]), jnp.sum(expected[1])) if bounded else None)
+                 expected=None if expected is None else (jnp.sum(expected[0]),
+                                                         jnp.sum(expected[1])))
 
 
 def linear_rollout(expansion: Expansion, gains: Gains):
