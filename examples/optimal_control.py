@@ -22,6 +22,8 @@ The script
 4. runs model-predictive control (`jaxdyn.model_predictive_control`: the problem solved again
    every 25 ms from the measured state, ten iLQR iterations warm-started) on a cart-pole whose
    pole is 20 % heavier than the model's, against the open-loop plan and the feedback policy;
+   then on rails of ±0.4 m (path constraints |x| ≤ 0.4 m, an augmented Lagrangian about
+   iLQR), planned and in MPC;
 5. plans a reach of the Panda arm's hand to a point 0.27 m away (torques limited to 87 N·m on
    joints 1–4 and 12 N·m on 5–7, residual costs, semi-implicit Euler at 10 ms) and runs it in
    MPC on an arm carrying 1 kg in the hand that the controller's model does not know, timing
@@ -165,6 +167,21 @@ print(f"   MPC over {mpc_steps} steps (5 s): θ(2.5 s) = {float(mpc.q[100, 1]):+
       f" in all, {int(np.sum(np.asarray(mpc.status) != 0))} steps stopped at their 10")
 print(f"   {first:.1f} s the first call (compiling), {1e3 * again / mpc_steps:.1f} ms per step "
       "the second")
+
+# The cart on rails of ±0.4 m (the unconstrained plan runs it 0.6 m out): path constraints.
+on_rails = jaxdyn.ShootingProblem(
+    plant, running_cost, terminal_cost, num_nodes=100, dt=0.025, input_bounds=(-BOUND, BOUND),
+    path_constraints=lambda q, u, r, p: jnp.array([q[0] - 0.4, -q[0] - 0.4]))
+plan_r = jaxdyn.solve_optimal_control(on_rails, hanging, rest, P)
+mpc_r = jaxdyn.model_predictive_control(on_rails, hanging, rest, P, num_steps=mpc_steps,
+                                        plant_parameters=heavy)
+print(f"   on rails of ±0.4 m: plan {plan_r.message.split(':')[0]}, J* = "
+      f"{float(plan_r.cost):.5f} (without rails {float(plan.cost):.5f}), max |x| "
+      f"{float(jnp.max(jnp.abs(plan_r.q[:, 0]))):.6f} m (without "
+      f"{float(jnp.max(jnp.abs(plan.q[:, 0]))):.3f}), "
+      f"multipliers Σλ = {float(plan_r.path_multipliers.sum()):.4f} = −dJ*/dL; MPC with the "
+      f"heavier pole: max |x| {float(jnp.max(jnp.abs(mpc_r.q[:, 0]))):.4f} m, θ(5 s) = "
+      f"{float(mpc_r.q[-1, 1]):+.1e} rad")
 
 # -- 5. the Panda reaching with an unknown payload ----------------------------------------------
 tree, p = jaxdyn.from_urdf(jaxdyn.example_robot_urdf("panda"),

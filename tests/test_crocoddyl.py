@@ -21,7 +21,9 @@ Cases: (a) the Panda arm (fingers locked) reaching a point with its hand, gravit
 torque regularisation and torque bounds, solved with SolverBoxFDDP; the bounds are tightened
 from the Panda's own (87 / 12 N m, never reached by this motion) so that some are active at the
 optimum; (b) a fully actuated double pendulum (a URDF written here, read by both) swung up to
-upright, unbounded, solved with SolverFDDP, and by jaxdyn's DDP as well as iLQR.
+upright, unbounded, solved with SolverFDDP, and by jaxdyn's DDP as well as iLQR; (c) the same
+pendulum made to arrive exactly upright (a terminal constraint), against Crocoddyl's FDDP with
+a terminal penalty whose weight grows.
 
 Crocoddyl 3.2.1's wheels are built against Pinocchio 4.0.0's headers: with Pinocchio 4.1 it
 reads the model's layout wrongly (no gravity in its dynamics, an allocation failure building a
@@ -384,3 +386,46 @@ def test_the_pandas_optimal_cost_differentiated_by_a_links_mass():
     central = (optimal_cost(mass + h) - optimal_cost(mass - h)) / (2 * h)
     # measured: 0.00976597 against 0.00976596
     np.testing.assert_allclose(jax.grad(optimal_cost)(mass), central, rtol=1e-5)
+
+
+@pytest.mark.slow  # its own program (the constraints' outer loop about the solver): 15 s
+def test_a_terminal_constraint_is_the_limit_of_crocoddyls_terminal_penalty(double_pendulum):
+    """The double pendulum made to arrive exactly upright at rest (`terminal_constraints`,
+    jaxdyn's augmented Lagrangian) in place of its terminal cost: Crocoddyl's FDDP with the
+    terminal cost ½ W |x_N − upright|² converges to the constrained optimum as W grows, its
+    inputs off by O(1/W) — 1e-4, 1e-6, 1e-8 at W = 1e6, 1e8, 1e10 — and its running cost
+    to jaxdyn's constrained optimal cost. (Crocoddyl 3.2.1's SolverIntro does not enforce a
+    constraint on the terminal node: it ended 0.8 rad from upright, so the penalty is the
+    reference.)"""
+    c = double_pendulum
+    reference = c["reference"]
+    state = reference.terminalModel.differential.state
+    problem = jaxdyn.ShootingProblem(
+        c["problem"].dynamics, c["problem"].running_cost, num_nodes=N, dt=DT,
+        discretisation=jaxdyn.SemiImplicitEuler(),
+        terminal_constraints=lambda q, u, p: jnp.concatenate([q, u]) - jnp.asarray(UPRIGHT))
+    solution = jaxdyn.solve_optimal_control(
+        problem, c["q0"], jnp.zeros(2), c["p"],
+        solver=jaxdyn.ILQR(tol=TOL, constraint_tol=1e-10, max_iterations=500))
+    assert int(solution.status) == 0 and float(solution.constraint_violation) <= 1e-10
+    ours = np.asarray(solution.inputs)
+    errors = []
+    for weight in (1e6, 1e8, 1e10):
+        costs = crocoddyl.CostModelSum(state, 2)
+        costs.addCost("state", crocoddyl.CostModelResidual(
+            state, crocoddyl.ActivationModelQuad(4),
+            crocoddyl.ResidualModelState(state, UPRIGHT, 2)), weight)
+        terminal = crocoddyl.IntegratedActionModelEuler(
+            crocoddyl.DifferentialActionModelFreeFwdDynamics(
+                state, crocoddyl.ActuationModelFull(state), costs), 0.0)
+        penalised = crocoddyl.ShootingProblem(np.zeros(4), list(reference.runningModels),
+                                              terminal)
+        solver = crocoddyl.SolverFDDP(penalised)
+        solver.th_stop = 1e-18
+        assert solver.solve(penalised.rollout(list(ours)), list(ours), 1000, True)
+        errors.append(np.max(np.abs(np.array(solver.us) - ours)))
+        running = solver.cost - penalised.terminalData.cost
+        np.testing.assert_allclose(running, float(solution.cost), rtol=10 / weight)
+    # (measured 1.4e-4, 1.4e-6, 1.1e-8: each 100-fold W a 100-fold smaller difference)
+    assert errors[0] < 1e-3 and errors[1] < errors[0] / 30 and errors[2] < errors[1] / 30
+    assert errors[2] < 1e-7

@@ -124,6 +124,137 @@ def test_bounded_inputs_solve_the_quadratic_program():
     np.testing.assert_allclose(solution.inputs.ravel(), reference.x, atol=2e-5)
 
 
+# -- path and terminal constraints (augmented Lagrangian) --------------------------------------
+
+CHAIN_START = np.array([1.0, -0.5, 0.0, 0.8])
+
+
+def speed_limit(q, u, r, p):
+    return u[1] - p["limit"]  # the second mass's speed at most `limit`
+
+
+def reached(q, u, p):
+    return jnp.concatenate([q, u]) - p["target"]  # the final state exactly `target`
+
+
+CONSTRAINED_CHAIN = jaxdyn.ShootingProblem(
+    CHAIN_PLANT, chain_running, num_nodes=30, dt=DT, discretisation=jaxdyn.Euler(),
+    path_constraints=speed_limit, terminal_constraints=reached)
+CONSTRAINED_PARAMETERS = dict(CHAIN, limit=jnp.array(0.82),
+                              target=jnp.array([0.2, 0.3, 0.0, 0.0]))
+TIGHT = jaxdyn.ILQR(tol=1e-14, constraint_tol=1e-11)
+
+
+def constrained_chain_qp(limit, target):
+    """The chain's constrained problem as a quadratic program in the inputs (Euler's matrices,
+    the states eliminated): ½ rᵀ H r + gᵀ r subject to the speeds u₁ at nodes k < N at most
+    `limit` and the final state at `target`; SciPy's SLSQP finds the active set, the KKT
+    system on it gives the inputs and multipliers exactly."""
+    a, b = chain_matrices()
+    num = 30
+    # x_k = Φ_k x0 + Σ_j Γ_kj r_j
+    phi = [np.linalg.matrix_power(a, k) for k in range(num + 1)]
+    gamma = np.zeros((num + 1, 4, 2 * num))
+    for k in range(1, num + 1):
+        for j in range(k):
+            gamma[k, :, 2 * j:2 * j + 2] = phi[k - 1 - j] @ b
+    free = np.array([phi[k] @ CHAIN_START for k in range(num + 1)])
+    hessian = DT * sum(gamma[k].T @ STATE_WEIGHTS @ gamma[k] for k in range(num))
+    hessian += DT * np.kron(np.eye(num), INPUT_WEIGHTS)
+    gradient = DT * sum(gamma[k].T @ STATE_WEIGHTS @ free[k] for k in range(num))
+    speeds, speeds_free = gamma[:num, 3], free[:num, 3]  # u₁ at nodes 0 … N−1
+    final, final_free = gamma[num], free[num]
+
+    def cost(r):
+        return 0.5 * r @ hessian @ r + gradient @ r
+
+    search = scipy.optimize.minimize(
+        cost, np.zeros(2 * num), jac=lambda r: hessian @ r + gradient, method="SLSQP",
+        constraints=[dict(type="ineq", fun=lambda r: limit - speeds_free - speeds @ r,
+                          jac=lambda r: -speeds),
+                     dict(type="eq", fun=lambda r: final_free + final @ r - target,
+                          jac=lambda r: final)],
+        options=dict(ftol=1e-15, maxiter=1000))
+    active = np.flatnonzero(np.abs(speeds_free + speeds @ search.x - limit) < 1e-7)
+    rows = np.vstack([speeds[active], final])
+    kkt = np.block([[hessian, rows.T], [rows, np.zeros((len(rows), len(rows)))]])
+    rhs = np.concatenate([-gradient, limit - speeds_free[active], target - final_free])
+    solution = np.linalg.solve(kkt, rhs)
+    inputs, multipliers = solution[:2 * num], solution[2 * num:]
+    path = np.zeros(num)
+    path[active] = multipliers[:len(active)]
+    constant = DT * sum(0.5 * free[k] @ STATE_WEIGHTS @ free[k] for k in range(num))
+    return inputs, path, multipliers[len(active):], cost(inputs) + constant, active
+
+
+def test_path_and_terminal_constraints_solve_the_quadratic_program():
+    """The linear chain with its second mass's speed limited at every node (active on a few)
+    and its final state prescribed: the optimum, the constraints' multipliers λ ≥ 0 and ν
+    are the KKT solution of the quadratic program on its active set (SciPy's SLSQP for the
+    active set); without the limit the speed would exceed it."""
+    solution = jaxdyn.solve_optimal_control(CONSTRAINED_CHAIN, CHAIN_START[:2], CHAIN_START[2:],
+                                            CONSTRAINED_PARAMETERS, solver=TIGHT)
+    inputs, path, terminal, cost, active = constrained_chain_qp(0.82, np.array([0.2, 0.3, 0, 0]))
+    assert int(solution.status) == 0 and len(active) >= 2
+    assert float(solution.constraint_violation) <= 1e-11
+    np.testing.assert_allclose(solution.cost, cost, rtol=1e-10)
+    np.testing.assert_allclose(solution.inputs.ravel(), inputs, atol=1e-6)
+    np.testing.assert_allclose(solution.path_multipliers[:, 0], path, atol=1e-6)
+    np.testing.assert_allclose(solution.terminal_multipliers, terminal, rtol=1e-6)
+    np.testing.assert_allclose(solution.u[-1], 0.0, atol=1e-11)
+    unlimited = jaxdyn.solve_optimal_control(CONSTRAINED_CHAIN, CHAIN_START[:2],
+                                             CHAIN_START[2:], dict(CONSTRAINED_PARAMETERS,
+                                                                   limit=jnp.array(9.0)))
+    assert float(jnp.max(unlimited.u[:, 1])) > 0.83
+
+
+def test_gradients_of_a_constrained_optimum_against_finite_differences():
+    """d J*/d p with active path and terminal constraints (implicit function theorem, the
+    active constraints held) against central differences of solves: a mass, a stiffness,
+    the limit (whose derivative is −Σ λ_k) and a target (−ν); under `vmap` one program."""
+    def cost(p):
+        return jaxdyn.solve_optimal_control(CONSTRAINED_CHAIN, CHAIN_START[:2],
+                                            CHAIN_START[2:], p, solver=TIGHT).cost
+
+    gradient = jax.grad(cost)(CONSTRAINED_PARAMETERS)
+    h = 1e-5
+    for name, index in (("m", 0), ("k", 1), ("limit", ()), ("target", 1)):
+        value = jnp.asarray(CONSTRAINED_PARAMETERS[name])
+        up, down = (cost(dict(CONSTRAINED_PARAMETERS, **{name: value.at[index].add(sign * h)}))
+                    for sign in (1, -1))
+        np.testing.assert_allclose(gradient[name][index], (up - down) / (2 * h), rtol=1e-6)
+    solution = jaxdyn.solve_optimal_control(CONSTRAINED_CHAIN, CHAIN_START[:2],
+                                            CHAIN_START[2:], CONSTRAINED_PARAMETERS,
+                                            solver=TIGHT)
+    np.testing.assert_allclose(gradient["limit"], -jnp.sum(solution.path_multipliers),
+                               rtol=1e-6)
+    np.testing.assert_allclose(gradient["target"], -solution.terminal_multipliers, rtol=1e-6)
+    limits = jnp.array([0.82, 0.85])
+    batched = jax.vmap(lambda limit: cost(dict(CONSTRAINED_PARAMETERS, limit=limit)))(limits)
+    np.testing.assert_allclose(batched[0], solution.cost, rtol=1e-12)
+
+
+def test_infeasible_constraints_are_reported_not_hidden():
+    """A speed limit below the initial speed (0.8) cannot hold at node 0: the solve stops
+    with the constraints violated (status 3) and says so, rather than returning the
+    penalised trajectory as an optimum; constraints that are not functions or return
+    matrices are refused by name."""
+    with pytest.warns(jaxdyn.NotConvergedWarning, match="constraints violated"):
+        solution = jaxdyn.solve_optimal_control(
+            CONSTRAINED_CHAIN, CHAIN_START[:2], CHAIN_START[2:],
+            dict(CONSTRAINED_PARAMETERS, limit=jnp.array(0.7)))
+    assert int(solution.status) == 3 and not bool(solution.converged)
+    np.testing.assert_allclose(solution.constraint_violation, 0.1, rtol=1e-6)
+    with pytest.raises(ValueError, match="path_constraints must be a function"):
+        jaxdyn.ShootingProblem(CHAIN_PLANT, chain_running, num_nodes=5, dt=DT,
+                               path_constraints=1.0)
+    matrix = jaxdyn.ShootingProblem(CHAIN_PLANT, chain_running, num_nodes=5, dt=DT,
+                                    terminal_constraints=lambda q, u, p: jnp.outer(q, u))
+    with pytest.raises(ValueError, match="terminal constraints h must return a scalar or a "
+                                         "vector"):
+        jaxdyn.solve_optimal_control(matrix, CHAIN_START[:2], CHAIN_START[2:], CHAIN)
+
+
 # -- the cart-pole, swung up -------------------------------------------------------------------
 
 CART_PLANT = jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), input_map=[0])
@@ -172,6 +303,30 @@ def test_cart_pole_swings_up_and_its_gains_hold_it(swing_up):
     # (the feedback acts continuously, the plan's inputs were held: 1.3e-3 apart)
     np.testing.assert_allclose(closed.q, swing_up.q, atol=3e-3)
     assert np.all(np.abs(closed.inputs) <= FORCE)
+
+
+@pytest.mark.slow  # its own program (the constraints' outer loop): 10 s of compiling
+def test_the_cart_pole_swings_up_within_its_rails(swing_up):
+    """The swing-up with the cart's travel limited to |x| ≤ 0.4 m (path constraints; the
+    unconstrained optimum runs to 0.6 m): the limit holds to the tolerance, touched where
+    its multipliers are positive and nowhere else (complementarity), the pole still ends
+    upright, at a higher cost than without rails."""
+    travel = 0.4
+    problem = jaxdyn.ShootingProblem(
+        CART_PLANT, swing_up_running, swing_up_terminal, num_nodes=100, dt=0.025,
+        input_bounds=(-FORCE, FORCE),
+        path_constraints=lambda q, u, r, p: jnp.array([q[0] - travel, -q[0] - travel]))
+    plan = jaxdyn.solve_optimal_control(problem, HANGING, jnp.zeros(2), CART_POLE)
+    assert float(jnp.max(jnp.abs(swing_up.q[:, 0]))) > 0.6
+    assert bool(plan.converged) and float(plan.constraint_violation) <= 1e-6
+    assert float(jnp.max(jnp.abs(plan.q[:-1, 0]))) <= travel + 1e-6
+    multipliers = np.asarray(plan.path_multipliers)
+    margin = np.stack([travel - np.asarray(plan.q[:-1, 0]), travel + np.asarray(plan.q[:-1, 0])],
+                      axis=1)
+    assert np.all(multipliers >= 0) and np.any(multipliers > 0)
+    assert np.all(margin[multipliers > 0] <= 1e-6)
+    np.testing.assert_allclose(plan.q[-1], 0.0, atol=2e-3)
+    assert float(plan.cost) > float(swing_up.cost)
 
 
 # Solves converged to round-off, the references of the finite differences: DDP from the optimum

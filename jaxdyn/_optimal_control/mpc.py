@@ -49,7 +49,8 @@ def model_predictive_control(problem: ShootingProblem, q0, u0, p=None, *, num_st
 
         min Σ_{k<N} Δt ℓ + Φ  from the measured state x(t_j)
 
-    warm-started from the previous solution shifted by one node, apply its first input r_0
+    warm-started from the previous solution shifted by one node (its inputs, and with path or
+    terminal constraints their multipliers), apply its first input r_0
     over [t_j, t_j + Δt) (a zero-order hold) and integrate the plant over the interval with
     `jaxdyn.simulate` (adaptive Dopri8 at `rtol`, `atol`). The whole loop is one compiled
     program (`jax.lax.scan`): `jax.vmap` it over initial states or parameters.
@@ -129,8 +130,10 @@ def _closed_loop(problem, plant, solver, first, q0, u0, p, plant_parameters, num
         t = problem.t0 + j.astype(q.dtype) * problem.dt
         current = eqx.tree_at(lambda pr: pr.t0, problem, t)
         guess = _warm_start(problem, plan, t, q, u, p)
+        # (the constraints' multipliers warm-started too, moved on by one node)
+        duals = (_shifted(plan.path_multipliers), plan.terminal_multipliers)
         plan = jax.lax.cond(j == 0, lambda: plan, lambda: _solve(
-            current, solver, q, u, p, guess, None))
+            current, solver, q, u, p, guess, None, duals if problem.constrained else None))
         applied = plan.inputs[0]
         reached = simulate(plant.with_inputs(applied), q, u, plant_parameters, t0=t,
                            t1=t + problem.dt, rtol=rtol, atol=atol, save=("q", "u"),

@@ -12,8 +12,10 @@ from .._compile import filter_jit
 from .._state import check_vector, numbers_as_arrays, under_a_trace
 from .problem import ShootingProblem
 from .sensitivity import pull_back
-from .solver import (CONVERGED, DIVERGED, ILQR, MESSAGES, AbstractTrajectorySolver,
-                     iterate_to_optimum)
+from .augmented_lagrangian import (derivative_problem, iterate_with_constraints,
+                                   unconstrained_multipliers)
+from .solver import (CONSTRAINTS_UNMET, CONVERGED, DIVERGED, ILQR, MESSAGES,
+                     AbstractTrajectorySolver, iterate_to_optimum)
 
 
 class NotConvergedWarning(UserWarning):
@@ -39,6 +41,14 @@ class OptimalTrajectory(eqx.Module):
     - `regularisation`: the final Levenberg–Marquardt μ.
     - `predicted_decrease`: the decrease of the cost the last backward pass predicted for a
       full step, the measure of convergence (against `tol` (1 + |J|)).
+    - `status` 3: with constraints, stopped with them violated beyond the solver's
+      `constraint_tol`.
+    - `constraint_violation`: the largest violation max(c, 0), |h| of the path and terminal
+      constraints (0 without constraints).
+    - `path_multipliers` (N, c), `terminal_multipliers` (e,): the constraints' Lagrange
+      multipliers, λ ≥ 0 (zero where a path constraint is inactive) and ν, as the augmented
+      Lagrangian estimates them; the derivative of the optimal cost with respect to a
+      constraint's bound. Empty (shape (N, 0), (0,)) without constraints.
     """
 
     ts: jax.Array
@@ -53,6 +63,9 @@ class OptimalTrajectory(eqx.Module):
     gap: jax.Array
     regularisation: jax.Array
     predicted_decrease: jax.Array
+    constraint_violation: jax.Array
+    path_multipliers: jax.Array
+    terminal_multipliers: jax.Array
 
     @property
     def converged(self):
@@ -186,7 +199,14 @@ def _report(result: OptimalTrajectory):
                          f"{float(np.max(result.regularisation)):.1e}). Check that the costs "
                          "and dynamics are finite along the guess, scale the costs, or start "
                          "from a better guess (inputs=, states=).")
-    if np.any(status != CONVERGED):
+    if np.any(status == CONSTRAINTS_UNMET):
+        warnings.warn(f"solve_optimal_control {MESSAGES[CONSTRAINTS_UNMET]} (largest "
+                      f"violation {float(np.max(result.constraint_violation)):.1e}, after "
+                      f"{int(np.max(result.iterations))} iterations): the trajectory is not "
+                      "an optimum of the constrained problem. The constraints may be "
+                      "infeasible from this start; else raise the solver's max_iterations "
+                      "or constraint_tol.", NotConvergedWarning, stacklevel=3)
+    elif np.any(status != CONVERGED):
         warnings.warn(f"solve_optimal_control {MESSAGES[int(status.max())]} "
                       f"({int(np.max(result.iterations))} iterations; the predicted decrease "
                       f"{float(np.max(result.predicted_decrease)):.1e} is still above the "
@@ -195,7 +215,8 @@ def _report(result: OptimalTrajectory):
 
 
 @filter_jit
-def _solve(problem, solver, q0, u0, p, inputs, states):
+def _solve(problem, solver, q0, u0, p, inputs, states, duals=None):
+    """The solve; `duals`: the constraints' multipliers to start from (λ, ν), or None."""
     num_q = q0.shape[0]
     x_init = jnp.concatenate([q0, u0])
     if states is None:
@@ -205,7 +226,11 @@ def _solve(problem, solver, q0, u0, p, inputs, states):
     # The guess is where the iterations start, not a function of (q0, u0, p): the optimum's
     # derivatives come from the implicit function theorem alone.
     xs, inputs = jax.lax.stop_gradient((xs, inputs))
-    iterate = _optimum((x_init, p), problem, solver, xs, inputs, num_q, states is None)
+    if duals is not None:
+        duals = jax.lax.stop_gradient(duals)
+    iterate, multipliers = _optimum((x_init, p), problem, solver, xs, inputs, num_q,
+                                    states is None, duals)
+    multipliers = jax.lax.stop_gradient(multipliers)
     xs, rs = iterate.xs, iterate.rs
     gains = jax.lax.stop_gradient(iterate.gains)
     return OptimalTrajectory(
@@ -213,37 +238,51 @@ def _solve(problem, solver, q0, u0, p, inputs, states):
         cost=problem.cost(xs, rs, p, num_q), feedforward=gains.feedforward,
         feedback=gains.feedback, iterations=iterate.iterations, status=iterate.status,
         gap=jnp.max(jnp.abs(iterate.gaps)), regularisation=iterate.regularisation,
-        predicted_decrease=iterate.decrease)
+        predicted_decrease=iterate.decrease, constraint_violation=multipliers.violation,
+        path_multipliers=(multipliers.path_estimate if problem.constrained
+                          else jnp.zeros((problem.num_nodes, 0), xs.dtype)),
+        terminal_multipliers=multipliers.terminal_estimate)
 
 
 @eqx.filter_custom_vjp
-def _optimum(theta, problem, solver, xs, rs, num_q, feasible):
+def _optimum(theta, problem, solver, xs, rs, num_q, feasible, duals):
     x_init, p = theta
 
-    def solve(problem, solver, x_init, p, xs, rs):
-        return iterate_to_optimum(problem, solver, x_init, p, xs, rs, num_q, feasible=feasible)
+    def solve(problem, solver, x_init, p, xs, rs, duals):
+        if problem.constrained:
+            return iterate_with_constraints(problem, solver, x_init, p, xs, rs, num_q,
+                                            feasible=feasible, duals=duals)
+        return (iterate_to_optimum(problem, solver, x_init, p, xs, rs, num_q,
+                                   feasible=feasible), unconstrained_multipliers(xs.dtype))
 
     # Under `vmap`, one problem after another (`jaxdyn._chunking`): vmapped whole, every loop
     # of the solver (iterations, line search, box QP at each node) runs until its slowest
     # member stops, and a tree's recursions run as whole-batch array code. 64 Panda
     # problems: 404 ms per problem vmapped whole, 138 one after another (a single solve:
     # 133); 1024 double pendulums 1.64 and 1.15 ms.
-    return chunked_vmap(solve)(problem, solver, x_init, p, xs, rs)
+    return chunked_vmap(solve)(problem, solver, x_init, p, xs, rs, duals)
 
 
 @_optimum.def_fwd
-def _optimum_fwd(perturbed, theta, problem, solver, xs, rs, num_q, feasible):
+def _optimum_fwd(perturbed, theta, problem, solver, xs, rs, num_q, feasible, duals):
     del perturbed
-    iterate = _optimum.fn(theta, problem, solver, xs, rs, num_q, feasible)
-    return iterate, iterate
+    optimum = _optimum.fn(theta, problem, solver, xs, rs, num_q, feasible, duals)
+    return optimum, optimum
 
 
 @_optimum.def_bwd
-def _optimum_bwd(iterate, cotangent, perturbed, theta, problem, solver, xs, rs, num_q,
-                 feasible):
-    del perturbed, xs, rs, solver, feasible
+def _optimum_bwd(optimum, cotangent, perturbed, theta, problem, solver, xs, rs, num_q,
+                 feasible, duals):
+    del perturbed, xs, rs, solver, feasible, duals
+    iterate, multipliers = optimum
+    cotangent = cotangent[0]
     x_init, p = theta
     xs_bar = jnp.zeros_like(iterate.xs) if cotangent.xs is None else cotangent.xs
     rs_bar = jnp.zeros_like(iterate.rs) if cotangent.rs is None else cotangent.rs
+    # With constraints, those of the problem whose Hessian holds the active constraints stiffly
+    # (`derivative_problem`): the last augmented problem's own, whose penalty may have stayed
+    # small, would let them move (by 2-4 % on the tests' linear problem).
+    if problem.constrained:
+        problem = derivative_problem(problem, multipliers, iterate.xs, iterate.rs, p, num_q)
     return pull_back(problem, x_init, p, iterate.xs, iterate.rs, iterate.gains.free, xs_bar,
                      rs_bar, num_q)

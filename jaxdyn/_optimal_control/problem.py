@@ -151,7 +151,8 @@ class ShootingProblem(eqx.Module):
 
         minimise   Σ_{k<N} Δt ℓ(q_k, u_k, r_k, p) + Φ(q_N, u_N, p)
         subject to (q, u)_{k+1} = F_Δt((q, u)_k, r_k),   (q, u)_0 = (q0, u0),
-                   r_lo ≤ r_k ≤ r_hi,
+                   r_lo ≤ r_k ≤ r_hi,   c(q_k, u_k, r_k, p) ≤ 0 (k < N),
+                   h(q_N, u_N, p) = 0,
 
     F_Δt one step of `discretisation` of the equations of motion q̇ = K u,
     M u̇ = f + B r with r held over the step. The running cost is integrated by the
@@ -177,8 +178,20 @@ class ShootingProblem(eqx.Module):
       integrator's step).
     - `input_bounds`: (r_lo, r_hi), arrays of shape (k,) or scalars (±inf where unbounded);
       None for unbounded inputs.
+    - `path_constraints`: c(q, u, r, p) → a vector, kept c ≤ 0 at every node k < N (limits
+      of a state: a cart's travel, a joint's range; of an input's combination: a friction
+      cone, a power limit; c(t, q, u, r, p) with `time_dependent`); None: none.
+    - `terminal_constraints`: h(q, u, p) → a vector, made h = 0 at node N (reach a state
+      exactly rather than by a terminal cost's weight); None: none.
     - `t0`: the time of node 0.
-    - `time_dependent`: whether the costs take t first.
+    - `time_dependent`: whether the costs and constraints take t first.
+
+    With constraints, `jaxdyn.solve_optimal_control` solves by an augmented Lagrangian about
+    the solver (Hestenes–Powell–Rockafellar; ALTRO's outer loop, Howell, Jackson and
+    Manchester, IROS 2019): the solver minimises the costs with Δt⁻¹ ½ μ ‖max(0, c + λ/μ)‖²
+    added at each node and ½ μ ‖h + ν/μ‖² at node N, then λ ← max(0, λ + μ c), ν ← ν + μ h,
+    μ grown tenfold where the violation did not fall fourfold, until the largest violation
+    is below the solver's `constraint_tol`.
 
     Targets and weights that you want to differentiate the optimum with respect to belong in
     p, with the physical parameters (`jaxdyn.solve_optimal_control` differentiates with respect
@@ -201,6 +214,8 @@ class ShootingProblem(eqx.Module):
     input_bounds: tuple | None = eqx.field(default=None, static=True)
     t0: float | jax.Array | np.ndarray = 0.0
     time_dependent: bool = eqx.field(default=False, static=True)
+    path_constraints: object = eqx.field(default=None, static=True)
+    terminal_constraints: object = eqx.field(default=None, static=True)
 
     def __check_init__(self):
         if not isinstance(self.dynamics, AbstractDynamics):
@@ -225,10 +240,16 @@ class ShootingProblem(eqx.Module):
         self.discretisation.check(self.dynamics)
         if self.input_bounds is not None and len(self.input_bounds) != 2:
             raise ValueError("input_bounds must be a pair (r_lo, r_hi).")
+        for name, value, form in (("path_constraints", self.path_constraints,
+                                   "c(q, u, r, p) → vector (c ≤ 0)"),
+                                  ("terminal_constraints", self.terminal_constraints,
+                                   "h(q, u, p) → vector (h = 0)")):
+            if value is not None and not callable(value):
+                raise ValueError(f"{name} must be a function {form}, or None.")
 
     def __init__(self, dynamics, running_cost, terminal_cost=None, *, num_nodes, dt,
                  discretisation=RungeKutta4(), input_bounds=None, t0=0.0,
-                 time_dependent=False):
+                 time_dependent=False, path_constraints=None, terminal_constraints=None):
         self.dynamics = dynamics
         self.running_cost = running_cost
         self.terminal_cost = terminal_cost
@@ -243,6 +264,8 @@ class ShootingProblem(eqx.Module):
         # t0 (a receding horizon's) then reuses the program instead of compiling another.
         self.t0 = np.asarray(t0, dtype=float) if isinstance(t0, (int, float)) else t0
         self.time_dependent = time_dependent
+        self.path_constraints = path_constraints
+        self.terminal_constraints = terminal_constraints
 
     # -- the discrete dynamics ------------------------------------------------------------------
 
@@ -297,6 +320,39 @@ class ShootingProblem(eqx.Module):
             return jnp.zeros((), x.dtype)
         return _cost_value(call(self.terminal_cost, "terminal cost Φ", self.time_dependent,
                                 _TERMINAL_ARGS, t, x[:num_q], x[num_q:], p), "terminal cost Φ")
+
+    # -- the constraints ------------------------------------------------------------------------
+
+    @property
+    def constrained(self) -> bool:
+        """Whether the problem has path or terminal constraints."""
+        return self.path_constraints is not None or self.terminal_constraints is not None
+
+    def path_value(self, t, x, r, p, num_q):
+        """c(t_k, q_k, u_k, r_k, p) (c ≤ 0), shape (c,); (0,) without path constraints."""
+        if self.path_constraints is None:
+            return jnp.zeros((0,), x.dtype)
+        return _constraint_value(call(self.path_constraints, "path constraints c",
+                                      self.time_dependent, _RUNNING_ARGS, t, x[:num_q],
+                                      x[num_q:], r, p), "path constraints c")
+
+    def terminal_value(self, t, x, p, num_q):
+        """h(t_N, q_N, u_N, p) (h = 0), shape (e,); (0,) without terminal constraints."""
+        if self.terminal_constraints is None:
+            return jnp.zeros((0,), x.dtype)
+        return _constraint_value(call(self.terminal_constraints, "terminal constraints h",
+                                      self.time_dependent, _TERMINAL_ARGS, t, x[:num_q],
+                                      x[num_q:], p), "terminal constraints h")
+
+    def violation(self, xs, rs, p, num_q):
+        """max(max_k max(c_k, 0), |h|): the largest violation of the constraints along a
+        trajectory (0 without constraints)."""
+        ts = self.times(xs.dtype)
+        path = jax.vmap(self.path_value, in_axes=(0, 0, 0, None, None))(ts[:-1], xs[:-1], rs,
+                                                                          p, num_q)
+        terminal = self.terminal_value(ts[-1], xs[-1], p, num_q)
+        return jnp.maximum(jnp.max(jnp.maximum(path, 0.0), initial=0.0),
+                           jnp.max(jnp.abs(terminal), initial=0.0))
 
     def node_cost(self, t, x, r, p, num_q):
         """Δt ℓ(t_k, q_k, u_k, r_k, p), the running cost of node k (ℓ = ½‖ρ‖² for a
@@ -370,6 +426,14 @@ def _cost_value(value, name):
         raise ValueError(f"the {name} must return a scalar or a residual vector ρ (ℓ = ½‖ρ‖²),"
                          f" got shape {value.shape}.")
     return value
+
+
+def _constraint_value(value, name):
+    value = jnp.asarray(value)
+    if value.ndim > 1:
+        raise ValueError(f"the {name} must return a scalar or a vector, got shape "
+                         f"{value.shape}.")
+    return jnp.atleast_1d(value)
 
 
 def _as_cost(value):

@@ -31,9 +31,11 @@ import numpy as np
 from .problem import ShootingProblem
 from .riccati import Expansion, Gains, backward_pass, linear_rollout
 
-CONVERGED, ITERATION_LIMIT, DIVERGED = 0, 1, 2
+CONVERGED, ITERATION_LIMIT, DIVERGED, CONSTRAINTS_UNMET = 0, 1, 2, 3
 MESSAGES = {CONVERGED: "converged: the predicted decrease fell below the tolerance on a "
                        "feasible trajectory",
+            CONSTRAINTS_UNMET: "stopped with the constraints violated beyond their tolerance "
+                               "after the augmented Lagrangian's last update",
             ITERATION_LIMIT: "stopped at the iteration limit before converging",
             DIVERGED: "diverged: no step decreased the cost even at the largest "
                       "regularisation, or the cost is not finite"}
@@ -46,6 +48,7 @@ class AbstractTrajectorySolver(eqx.Module):
 
     max_iterations: eqx.AbstractVar[int]
     tol: eqx.AbstractVar[float]
+    constraint_tol: eqx.AbstractVar[float]
     second_order: ClassVar[bool]
 
 
@@ -59,13 +62,17 @@ class ILQR(AbstractTrajectorySolver):
 
     **Arguments:**
 
-    - `max_iterations`: the iteration limit (each backward pass counts one).
+    - `max_iterations`: the iteration limit (each backward pass counts one; with
+      constraints, those of all the augmented Lagrangian's inner solves together).
     - `tol`: converged when the trajectory is feasible and the full step's predicted change
       of the cost is below `tol` (1 + |J|) in absolute value.
+    - `constraint_tol`: with path or terminal constraints (`jaxdyn.ShootingProblem`), the
+      largest violation max(c, 0), |h| accepted at convergence.
     """
 
     max_iterations: int = eqx.field(default=200, static=True)
     tol: float = eqx.field(default=1e-9, static=True)
+    constraint_tol: float = eqx.field(default=1e-6, static=True)
     second_order: ClassVar[bool] = False
 
 
@@ -81,6 +88,7 @@ class DDP(AbstractTrajectorySolver):
 
     max_iterations: int = eqx.field(default=200, static=True)
     tol: float = eqx.field(default=1e-9, static=True)
+    constraint_tol: float = eqx.field(default=1e-6, static=True)
     second_order: ClassVar[bool] = True
 
 
@@ -220,7 +228,7 @@ def _lowered(mu):
     return jnp.where(mu / 10 < _REGULARISATION[0], 0.0, mu / 10)
 
 
-def _iteration(problem, solver, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
+def _iteration(problem, solver, lo, hi, p, num_q, tol, iterate: Iterate) -> Iterate:
     xs, rs = iterate.xs, iterate.rs
     expansion = expand(problem, xs, rs, iterate.gaps, p, num_q, exact=solver.second_order)
     second = dynamics_curvature(problem, xs, rs, p, num_q) if solver.second_order else None
@@ -253,7 +261,7 @@ def _iteration(problem, solver, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
     # shortens the step, and with it the prediction, far from an optimum. (In absolute value:
     # box-DDP's model predicts a rise where an input has yet to reach its bound.)
     converged = (gains.ok & feasible & (iterate.regularisation <= _REGULARISATION[0])
-                 & (jnp.abs(decrease) <= solver.tol * (1 + jnp.abs(iterate.cost))))
+                 & (jnp.abs(decrease) <= tol * (1 + jnp.abs(iterate.cost))))
 
     def step(_):
         new_xs, new_rs, cost, alpha, accepted = _line_search(problem, iterate, gains, d1, d2,
@@ -282,11 +290,11 @@ def _iteration(problem, solver, lo, hi, p, num_q, iterate: Iterate) -> Iterate:
                    gains=gains, decrease=decrease)
 
 
-def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolver, x_init, p,
-                       xs, rs, num_q, *, feasible: bool = False) -> Iterate:
-    """The solver's iterations from the guess (xs, rs) until converged, diverged or at the
-    iteration limit. The returned gains are those of the last backward pass (at the optimum
-    when converged). `feasible`: xs is the rollout of rs from x_init (no gaps to form)."""
+def initial_iterate(problem: ShootingProblem, x_init, p, xs, rs, num_q, *,
+                    feasible: bool = False, iterations=0) -> Iterate:
+    """The iteration's state at the guess (xs, rs): inputs clipped to their bounds, gaps and
+    cost formed, no gains yet. `feasible`: xs is the rollout of rs from x_init (no gaps to
+    form); `iterations`: those already counted (by earlier solves)."""
     lo, hi = problem.bounds(rs.shape[1], rs.dtype)
     if lo is not None and hi is not None:
         rs = jnp.clip(rs, lo[None], hi[None])
@@ -301,14 +309,29 @@ def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolve
                   expected=None if lo is None else (jnp.zeros((), rs.dtype),
                                                       jnp.zeros((), rs.dtype)))
     finite = jnp.isfinite(cost)
-    start = Iterate(xs=xs, rs=rs, gaps=gaps, cost=cost,
-                    regularisation=jnp.zeros((), rs.dtype),
-                    iterations=jnp.array(0), status=jnp.where(finite, ITERATION_LIMIT, DIVERGED),
-                    done=~finite, gains=empty, decrease=jnp.asarray(jnp.inf, rs.dtype))
+    return Iterate(xs=xs, rs=rs, gaps=gaps, cost=cost,
+                   regularisation=jnp.zeros((), rs.dtype),
+                   iterations=jnp.asarray(iterations, jnp.int32),
+                   status=jnp.where(finite, ITERATION_LIMIT, DIVERGED), done=~finite,
+                   gains=empty, decrease=jnp.asarray(jnp.inf, rs.dtype))
+
+
+def iterate_to_optimum(problem: ShootingProblem, solver: AbstractTrajectorySolver, x_init, p,
+                       xs, rs, num_q, *, feasible: bool = False, iterations=0,
+                       tol=None) -> Iterate:
+    """The solver's iterations from the guess (xs, rs) until converged, diverged or at the
+    iteration limit. The returned gains are those of the last backward pass (at the optimum
+    when converged). `feasible`: xs is the rollout of rs from x_init (no gaps to form);
+    `iterations`: those already spent (the limit counts them); `tol`: the solver's, unless
+    given (a looser one, as an array, for the augmented Lagrangian's early solves)."""
+    tol = solver.tol if tol is None else tol
+    lo, hi = problem.bounds(rs.shape[1], rs.dtype)
+    start = initial_iterate(problem, x_init, p, xs, rs, num_q, feasible=feasible,
+                            iterations=iterations)
     # The limit is tested again beside `done`, which already holds it: XLA's while-loop passes
     # look for a trip count wherever a loop's condition reads a single loop-carried value, and
     # for that copy the whole computation of its update, here the whole iteration, at every
     # pass (the Panda reaching a point: 33 s of compilation against 10 s reading two values).
     return jax.lax.while_loop(
         lambda it: ~it.done & (it.iterations < solver.max_iterations),
-        lambda it: _iteration(problem, solver, lo, hi, p, num_q, it), start)
+        lambda it: _iteration(problem, solver, lo, hi, p, num_q, tol, it), start)
