@@ -11,8 +11,10 @@ first-order update and the penalty grows where the violation fell too slowly:
 
     λ_k ← max(0, λ_k + μ c_k),   ν ← ν + μ h,   μ ← 10 μ unless the violation fell fourfold,
 
-until the largest violation, max(max_k max(c_k, 0), |h|), is below the solver's
-`constraint_tol` at a converged inner solve (R. T. Rockafellar, "The multiplier method of
+until the constraints hold and are complementary to their multipliers,
+max(max_k |max(c_k, −λ_k/μ)|, |h|) below the solver's `constraint_tol` (the measure of the
+bound-constrained augmented Lagrangian, zero only where each c_k = 0 or λ_k = 0), at a
+converged inner solve (R. T. Rockafellar, "The multiplier method of
 Hestenes and Powell applied to convex programming", JOTA 12, 1973; in trajectory
 optimisation, the outer loop of ALTRO: T. A. Howell, B. E. Jackson and Z. Manchester,
 "ALTRO: a fast solver for constrained trajectory optimization", IROS 2019). The penalty of
@@ -20,8 +22,12 @@ node k enters its running cost as Δt⁻¹ of it (the running cost is Δt ℓ); 
 terminal cost given as a residual ρ keeps its Gauss–Newton form, the penalty's residual
 √(μ/Δt) max(0, c + λ/μ) appended to it.
 
-Each inner solve starts from the last one's trajectory (with its gaps), and the solver's
-`max_iterations` bounds the backward passes of all of them together.
+Each inner solve starts from the last one's trajectory (with its gaps), the early ones to a
+loose tolerance (10⁻⁵, as ALTRO's intermediate tolerance) until the violation is within 100
+times its own; the solver's `max_iterations` bounds the backward passes of all of them
+together. Where a later inner solve diverges (a penalty stiffer than the solver's model of the
+nonlinear dynamics follows), the last solve's trajectory is returned with status 3, the
+constraints not met, and its violation.
 """
 
 import dataclasses
@@ -32,9 +38,11 @@ import jax
 import jax.numpy as jnp
 
 from .problem import ShootingProblem
-from .solver import CONSTRAINTS_UNMET, CONVERGED, Iterate, initial_iterate, iterate_to_optimum
+from .solver import (CONSTRAINTS_UNMET, CONVERGED, DIVERGED, Iterate, initial_iterate,
+                     iterate_to_optimum)
 
-_FIRST_PENALTY = 1.0
+_FIRST_PENALTY = 100.0  # (ALTRO starts at 1; on the cart-pole on rails of ±0.3 m, 1 led
+# to a worse local optimum the penalty then could not leave, 10-1000 all to the optimum)
 _PENALTY_GROWTH = 10.0
 _LARGEST_PENALTY = 1e8  # (ALTRO's largest)
 _UPDATES = 30  # the outer iterations (updates of the multipliers) at most
@@ -115,6 +123,7 @@ class Multipliers(eqx.Module):
     path_estimate: jax.Array
     terminal_estimate: jax.Array
     violation: jax.Array
+    residual: jax.Array
     updates: jax.Array
 
     def problem(self, problem: ShootingProblem) -> Augmented:
@@ -159,16 +168,17 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
     inf = jnp.asarray(jnp.inf, dtype)
     first = Multipliers(path=duals[0], terminal=duals[1],
                         penalty=jnp.asarray(_FIRST_PENALTY, dtype), path_estimate=duals[0],
-                        terminal_estimate=duals[1], violation=inf, updates=jnp.array(0))
+                        terminal_estimate=duals[1], violation=inf, residual=inf,
+                        updates=jnp.array(0))
     # Every inner solve inside the loop, the first too, so that the solver is compiled once.
     start = initial_iterate(problem, x_init, p, xs, rs, num_q, feasible=feasible)
 
     def outer(state):
-        iterate, multipliers, _, _ = state
+        iterate, multipliers, last_used, _ = state
         augmented = multipliers.problem(problem)
         # Early solves to a loose tolerance, while the multipliers are far from their values
         # (as ALTRO's intermediate tolerance): the solver's own once the violation nears its.
-        loose = multipliers.violation > _NEAR * solver.constraint_tol
+        loose = multipliers.residual > _NEAR * solver.constraint_tol
         tol = jnp.where(loose, jnp.maximum(_LOOSE_TOL, solver.tol), solver.tol)
         inner = iterate_to_optimum(augmented, solver, x_init, p, iterate.xs, iterate.rs,
                                    num_q, iterations=iterate.iterations, tol=tol)
@@ -177,7 +187,12 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
                                 jnp.max(jnp.abs(h), initial=0.0))
         mu = multipliers.penalty
         estimates = jnp.maximum(multipliers.path + mu * c, 0.0), multipliers.terminal + mu * h
-        met = (inner.status == CONVERGED) & (violation <= solver.constraint_tol) & ~loose
+        # Feasibility and complementarity together: max(c, −λ/μ) is zero only where c = 0 or
+        # λ = 0 (a constraint that still pushes, λ > 0, from inside its bound is not met).
+        residual = jnp.maximum(
+            jnp.max(jnp.abs(jnp.maximum(c, -multipliers.path / mu)), initial=0.0),
+            jnp.max(jnp.abs(h), initial=0.0))
+        met = (inner.status == CONVERGED) & (residual <= solver.constraint_tol) & ~loose
         updates = multipliers.updates + 1
         stop = met | (inner.status != CONVERGED) | (updates >= _UPDATES)
         status = jnp.where(met | (inner.status != CONVERGED), inner.status, CONSTRAINTS_UNMET)
@@ -186,12 +201,21 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
         used = eqx.tree_at(lambda m: (m.path_estimate, m.terminal_estimate, m.violation,
                                       m.updates),
                            multipliers, (*estimates, violation, updates))
-        slow = violation > 0.25 * multipliers.violation
+        used = eqx.tree_at(lambda m: m.residual, used, residual)
+        # A later solve that diverges (a penalty stiffer than the solver's model of the
+        # nonlinear dynamics can follow): the last solve's trajectory is returned, reported
+        # as not meeting the constraints, rather than an error for a problem that came close.
+        fell = (inner.status == DIVERGED) & (multipliers.updates > 0)
+        last = eqx.tree_at(lambda it: (it.status, it.done), iterate,
+                           (jnp.full_like(iterate.status, CONSTRAINTS_UNMET), stop))
+        inner, used = jax.tree_util.tree_map(lambda a, b: jnp.where(fell, a, b),
+                                             (last, last_used), (inner, used))
+        slow = residual > 0.25 * multipliers.residual
         following = Multipliers(
             path=estimates[0], terminal=estimates[1],
             penalty=jnp.where(slow, jnp.minimum(_PENALTY_GROWTH * mu, _LARGEST_PENALTY), mu),
             path_estimate=estimates[0], terminal_estimate=estimates[1], violation=violation,
-            updates=updates)
+            residual=residual, updates=updates)
         return inner, following, used, stop
 
     # (the last multipliers used are returned with the iterate: its augmented problem)
@@ -205,4 +229,5 @@ def unconstrained_multipliers(dtype) -> Multipliers:
     empty = jnp.zeros((0,), dtype)
     return Multipliers(path=empty, terminal=empty, penalty=jnp.zeros((), dtype),
                        path_estimate=empty, terminal_estimate=empty,
-                       violation=jnp.zeros((), dtype), updates=jnp.array(0))
+                       violation=jnp.zeros((), dtype), residual=jnp.zeros((), dtype),
+                       updates=jnp.array(0))

@@ -190,8 +190,9 @@ class ShootingProblem(eqx.Module):
     the solver (Hestenes–Powell–Rockafellar; ALTRO's outer loop, Howell, Jackson and
     Manchester, IROS 2019): the solver minimises the costs with Δt⁻¹ ½ μ ‖max(0, c + λ/μ)‖²
     added at each node and ½ μ ‖h + ν/μ‖² at node N, then λ ← max(0, λ + μ c), ν ← ν + μ h,
-    μ grown tenfold where the violation did not fall fourfold, until the largest violation
-    is below the solver's `constraint_tol`.
+    μ grown tenfold where the violation did not fall fourfold, until the constraints hold,
+    and are complementary to their multipliers (λ_k = 0 where c_k < 0), to the solver's
+    `constraint_tol`.
 
     Targets and weights that you want to differentiate the optimum with respect to belong in
     p, with the physical parameters (`jaxdyn.solve_optimal_control` differentiates with respect
@@ -343,16 +344,6 @@ class ShootingProblem(eqx.Module):
         return _constraint_value(call(self.terminal_constraints, "terminal constraints h",
                                       self.time_dependent, _TERMINAL_ARGS, t, x[:num_q],
                                       x[num_q:], p), "terminal constraints h")
-
-    def violation(self, xs, rs, p, num_q):
-        """max(max_k max(c_k, 0), |h|): the largest violation of the constraints along a
-        trajectory (0 without constraints)."""
-        ts = self.times(xs.dtype)
-        path = jax.vmap(self.path_value, in_axes=(0, 0, 0, None, None))(ts[:-1], xs[:-1], rs,
-                                                                          p, num_q)
-        terminal = self.terminal_value(ts[-1], xs[-1], p, num_q)
-        return jnp.maximum(jnp.max(jnp.maximum(path, 0.0), initial=0.0),
-                           jnp.max(jnp.abs(terminal), initial=0.0))
 
     def node_cost(self, t, x, r, p, num_q):
         """Δt ℓ(t_k, q_k, u_k, r_k, p), the running cost of node k (ℓ = ½‖ρ‖² for a

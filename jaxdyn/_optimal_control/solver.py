@@ -67,7 +67,8 @@ class ILQR(AbstractTrajectorySolver):
     - `tol`: converged when the trajectory is feasible and the full step's predicted change
       of the cost is below `tol` (1 + |J|) in absolute value.
     - `constraint_tol`: with path or terminal constraints (`jaxdyn.ShootingProblem`), the
-      largest violation max(c, 0), |h| accepted at convergence.
+      largest violation (max(c, 0), |h|) and departure from complementarity (min(−c, λ/μ))
+      accepted at convergence.
     """
 
     max_iterations: int = eqx.field(default=200, static=True)
