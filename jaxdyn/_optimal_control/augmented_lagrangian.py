@@ -218,9 +218,13 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
             residual=residual, updates=updates)
         return inner, following, used, stop
 
-    # (the last multipliers used are returned with the iterate: its augmented problem)
+    # (the last multipliers used are returned with the iterate: its augmented problem). The
+    # condition reads two loop-carried values, the count beside the flag that already holds
+    # it: where it reads one, XLA's trip-count analysis copies the computation of its update,
+    # here every inner solve, at each pass (`solver.iterate_to_optimum`).
     iterate, _, used, _ = jax.lax.while_loop(
-        lambda state: ~state[3], outer, (start, first, first, jnp.array(False)))
+        lambda state: ~state[3] & (state[1].updates < _UPDATES), outer,
+        (start, first, first, jnp.array(False)))
     return iterate, used
 
 
