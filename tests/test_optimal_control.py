@@ -237,12 +237,16 @@ def test_gradients_of_a_constrained_optimum_against_finite_differences():
 def test_infeasible_constraints_are_reported_not_hidden():
     """A speed limit below the initial speed (0.8) cannot hold at node 0: the solve stops
     with the constraints violated (status 3) and says so, rather than returning the
-    penalised trajectory as an optimum; constraints that are not functions or return
-    matrices are refused by name."""
-    with pytest.warns(jaxdyn.NotConvergedWarning, match="constraints violated"):
+    penalised trajectory as an optimum (a new limit compiles nothing); constraints that are
+    not functions or return matrices are refused by name."""
+    jaxdyn.solve_optimal_control(CONSTRAINED_CHAIN, CHAIN_START[:2], CHAIN_START[2:],
+                                 CONSTRAINED_PARAMETERS)
+    with pytest.warns(jaxdyn.NotConvergedWarning, match="constraints violated"), \
+            compiles() as count:
         solution = jaxdyn.solve_optimal_control(
             CONSTRAINED_CHAIN, CHAIN_START[:2], CHAIN_START[2:],
             dict(CONSTRAINED_PARAMETERS, limit=jnp.array(0.7)))
+    assert count() == 0
     assert int(solution.status) == 3 and not bool(solution.converged)
     np.testing.assert_allclose(solution.constraint_violation, 0.1, rtol=1e-6)
     with pytest.raises(ValueError, match="path_constraints must be a function"):

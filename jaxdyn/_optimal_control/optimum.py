@@ -192,24 +192,26 @@ def _checked_states(states, num_nodes, n, m, dtype):
 
 
 def _report(result: OptimalTrajectory):
+    # (NumPy on host copies: NumPy's reductions of JAX arrays would compile a program each)
     status = np.asarray(result.status)
+    iterations = int(np.max(np.asarray(result.iterations)))
     if np.any(status == DIVERGED):
-        raise ValueError(f"solve_optimal_control {MESSAGES[DIVERGED]} (after "
-                         f"{int(np.max(result.iterations))} iterations, μ = "
-                         f"{float(np.max(result.regularisation)):.1e}). Check that the costs "
-                         "and dynamics are finite along the guess, scale the costs, or start "
-                         "from a better guess (inputs=, states=).")
+        raise ValueError(f"solve_optimal_control {MESSAGES[DIVERGED]} (after {iterations} "
+                         "iterations, μ = "
+                         f"{float(np.max(np.asarray(result.regularisation))):.1e}). Check that "
+                         "the costs and dynamics are finite along the guess, scale the costs, "
+                         "or start from a better guess (inputs=, states=).")
     if np.any(status == CONSTRAINTS_UNMET):
+        violation = float(np.max(np.asarray(result.constraint_violation)))
         warnings.warn(f"solve_optimal_control {MESSAGES[CONSTRAINTS_UNMET]} (largest "
-                      f"violation {float(np.max(result.constraint_violation)):.1e}, after "
-                      f"{int(np.max(result.iterations))} iterations): the trajectory is not "
-                      "an optimum of the constrained problem. The constraints may be "
-                      "infeasible from this start; else raise the solver's max_iterations "
-                      "or constraint_tol.", NotConvergedWarning, stacklevel=3)
+                      f"violation {violation:.1e}, after {iterations} iterations): the "
+                      "trajectory is not an optimum of the constrained problem. The "
+                      "constraints may be infeasible from this start; else raise the solver's "
+                      "max_iterations or constraint_tol.", NotConvergedWarning, stacklevel=3)
     elif np.any(status != CONVERGED):
-        warnings.warn(f"solve_optimal_control {MESSAGES[int(status.max())]} "
-                      f"({int(np.max(result.iterations))} iterations; the predicted decrease "
-                      f"{float(np.max(result.predicted_decrease)):.1e} is still above the "
+        decrease = float(np.max(np.asarray(result.predicted_decrease)))
+        warnings.warn(f"solve_optimal_control {MESSAGES[int(status.max())]} ({iterations} "
+                      f"iterations; the predicted decrease {decrease:.1e} is still above the "
                       "tolerance): the trajectory is not an optimum. Raise the solver's "
                       "max_iterations.", NotConvergedWarning, stacklevel=3)
 
