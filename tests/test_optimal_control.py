@@ -333,6 +333,30 @@ def test_the_cart_pole_swings_up_within_its_rails(swing_up):
     assert float(plan.cost) > float(swing_up.cost)
 
 
+@pytest.mark.slow  # its own program: 10 s of compiling
+def test_an_inner_solve_that_diverges_returns_the_last_trajectory(monkeypatch):
+    """Rails of ±0.3 m from a first penalty of 1 (ALTRO's): the multipliers lead into a
+    region where, at μ = 10⁷, the inner solve diverges (its regularisation at the largest).
+    The solve then returns the last inner solve's trajectory, finite, as status 3 with its
+    violation and a warning (not an error for a problem that came within 10⁻³ m, nor that
+    trajectory passed off as converged)."""
+    import jaxdyn._optimal_control.augmented_lagrangian as augmented_lagrangian
+
+    monkeypatch.setattr(augmented_lagrangian, "_FIRST_PENALTY", 1.0)
+    problem = jaxdyn.ShootingProblem(  # (its own constraint function: its own program)
+        CART_PLANT, swing_up_running, swing_up_terminal, num_nodes=100, dt=0.025,
+        input_bounds=(-FORCE, FORCE),
+        path_constraints=lambda q, u, r, p: jnp.array([q[0] - 0.3, -q[0] - 0.3]))
+    with pytest.warns(jaxdyn.NotConvergedWarning, match="constraints violated"):
+        plan = jaxdyn.solve_optimal_control(problem, HANGING, jnp.zeros(2), CART_POLE,
+                                            solver=jaxdyn.ILQR(max_iterations=600))
+    assert int(plan.status) == 3
+    violation = float(jnp.max(jnp.abs(plan.q[:-1, 0]))) - 0.3
+    assert 1e-6 < float(plan.constraint_violation) < 1e-2
+    np.testing.assert_allclose(plan.constraint_violation, violation, rtol=1e-12)
+    assert np.all(np.isfinite(plan.inputs)) and np.all(np.abs(plan.inputs) <= FORCE)
+
+
 # Solves converged to round-off, the references of the finite differences: DDP from the optimum
 # converges quadratically (iLQR's linear convergence would leave the inputs ~10⁻⁶ off).
 def test_a_variational_discretisation_swings_the_cart_pole_up():

@@ -199,9 +199,8 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
         inner = eqx.tree_at(lambda it: (it.status, it.done), inner,
                             (status, stop))
         used = eqx.tree_at(lambda m: (m.path_estimate, m.terminal_estimate, m.violation,
-                                      m.updates),
-                           multipliers, (*estimates, violation, updates))
-        used = eqx.tree_at(lambda m: m.residual, used, residual)
+                                      m.residual, m.updates),
+                           multipliers, (*estimates, violation, residual, updates))
         # A later solve that diverges (a penalty stiffer than the solver's model of the
         # nonlinear dynamics can follow): the last solve's trajectory is returned, reported
         # as not meeting the constraints, rather than an error for a problem that came close.
@@ -228,10 +227,10 @@ def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs
     return iterate, used
 
 
-def unconstrained_multipliers(dtype) -> Multipliers:
-    """The state of a problem without constraints (nothing to report)."""
-    empty = jnp.zeros((0,), dtype)
-    return Multipliers(path=empty, terminal=empty, penalty=jnp.zeros((), dtype),
-                       path_estimate=empty, terminal_estimate=empty,
+def unconstrained_multipliers(num_nodes, dtype) -> Multipliers:
+    """The state of a problem without constraints (nothing to report: no multipliers)."""
+    path, empty = jnp.zeros((num_nodes, 0), dtype), jnp.zeros((0,), dtype)
+    return Multipliers(path=path, terminal=empty, penalty=jnp.zeros((), dtype),
+                       path_estimate=path, terminal_estimate=empty,
                        violation=jnp.zeros((), dtype), residual=jnp.zeros((), dtype),
                        updates=jnp.array(0))

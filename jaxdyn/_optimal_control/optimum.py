@@ -241,8 +241,7 @@ def _solve(problem, solver, q0, u0, p, inputs, states, duals=None):
         feedback=gains.feedback, iterations=iterate.iterations, status=iterate.status,
         gap=jnp.max(jnp.abs(iterate.gaps)), regularisation=iterate.regularisation,
         predicted_decrease=iterate.decrease, constraint_violation=multipliers.violation,
-        path_multipliers=(multipliers.path_estimate if problem.constrained
-                          else jnp.zeros((problem.num_nodes, 0), xs.dtype)),
+        path_multipliers=multipliers.path_estimate,
         terminal_multipliers=multipliers.terminal_estimate)
 
 
@@ -255,7 +254,8 @@ def _optimum(theta, problem, solver, xs, rs, num_q, feasible, duals):
             return iterate_with_constraints(problem, solver, x_init, p, xs, rs, num_q,
                                             feasible=feasible, duals=duals)
         return (iterate_to_optimum(problem, solver, x_init, p, xs, rs, num_q,
-                                   feasible=feasible), unconstrained_multipliers(xs.dtype))
+                                   feasible=feasible),
+                unconstrained_multipliers(problem.num_nodes, xs.dtype))
 
     # Under `vmap`, one problem after another (`jaxdyn._chunking`): vmapped whole, every loop
     # of the solver (iterations, line search, box QP at each node) runs until its slowest
