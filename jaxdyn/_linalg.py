@@ -43,8 +43,8 @@ NONFINITE_FORCING = (
 )
 
 # Up to this size the factorisation is written out in scalar operations, which XLA fuses with
-# the formation of M and f; a LAPACK call costs more than the whole arithmetic of a small
-# system (benchmarks/bench_equations.py).
+# the formation of M and f; a library call, or a loop over columns, costs more than the whole
+# arithmetic of a small system (benchmarks/bench_equations.py).
 UNROLL_MAX = 8
 
 
@@ -53,9 +53,10 @@ class Factorisation(eqx.Module):
 
     Blocks of equal size are factored together, vectorised over the blocks. `groups`: per
     block size, the coordinates of each block (static, shape (blocks, size)); `factors`: per
-    group either the unit lower-triangular L and the reciprocal pivots 1/D written out in
-    scalar operations, or a LAPACK Cholesky factor C = L D^½ (blocks above `UNROLL_MAX`).
-    `singular`: whether some pivot failed.
+    group the unit lower-triangular L and the reciprocal pivots 1/D, either written out in
+    scalar operations (nested lists, `written_out`) or, for blocks above `UNROLL_MAX`, as
+    arrays formed one column at a time (`ldl_by_columns`). `singular`: whether some pivot
+    failed.
     """
 
     groups: tuple[tuple[tuple[int, ...], ...], ...] = eqx.field(static=True)
@@ -68,11 +69,11 @@ def factorise(mass_matrix, *, unrolled: bool, blocks=None) -> Factorisation:
     """Factor M, block by block if `blocks` (lists of coordinates) is given.
 
     With `unrolled` every block is written out in scalar operations (the caller evaluates the
-    program as straight-line code); otherwise blocks up to `UNROLL_MAX` are, larger ones go to
-    LAPACK. A pivot fails when D_j ≤ m ε max_k |M_kk| (over the block, of size m) or is not
-    finite, which also catches matrices that are positive definite only by round-off (a
-    coordinate singularity approached: M = diag(1, sin² θ) near the pole). `singular` says
-    whether some pivot failed.
+    program as straight-line code); otherwise blocks up to `UNROLL_MAX` are, larger ones are
+    factored column by column (`ldl_by_columns`). A pivot fails when D_j ≤ m ε max_k |M_kk|
+    (over the block, of size m) or is not finite, which also catches matrices that are
+    positive definite only by round-off (a coordinate singularity approached: M = diag(1,
+    sin² θ) near the pole). `singular` says whether some pivot failed.
     """
     m = mass_matrix.shape[-1]
     blocks = [tuple(range(m))] if blocks is None else [tuple(b) for b in blocks]
@@ -88,13 +89,8 @@ def factorise(mass_matrix, *, unrolled: bool, blocks=None) -> Factorisation:
             lower, reciprocals, group_failed = ldl(sub)
             factors.append((lower, reciprocals))
         else:
-            cholesky = jnp.linalg.cholesky(sub)
-            pivots = jnp.diagonal(cholesky, axis1=-2, axis2=-1) ** 2
-            diagonal = jnp.diagonal(sub, axis1=-2, axis2=-1)
-            threshold = sub.shape[-1] * jnp.finfo(sub.dtype).eps * jnp.max(
-                jnp.abs(diagonal), axis=-1, keepdims=True)
-            group_failed = ~(pivots > threshold)  # also true for NaN pivots
-            factors.append(cholesky)
+            lower, reciprocals, group_failed = ldl_by_columns(sub)
+            factors.append((lower, reciprocals))
         written_out.append(write_out)
         failed.append(group_failed.reshape(-1))
     singular = jnp.any(jnp.concatenate(failed))
@@ -114,19 +110,16 @@ def solve(factorisation: Factorisation, forcing) -> jax.Array:
 
     Where a pivot failed, the entries of a that depend on it are NaN (written-out blocks:
     through the NaN reciprocal pivot, without coupling the other entries, so that XLA does
-    not recompute every entry's inputs for every entry); LAPACK blocks are NaN whole."""
+    not recompute every entry's inputs for every entry); blocks factored by columns are NaN
+    whole."""
     m = forcing.shape[-1]
     accelerations: jax.Array | None = None
     for group, factor, write_out in zip(factorisation.groups, factorisation.factors,
                                         factorisation.written_out):
         index = np.asarray(group)
         rhs = forcing[None] if _whole(group, m) else forcing[index]
-        if write_out:
-            lower, reciprocals = factor
-            x = ldl_solve(lower, reciprocals, rhs)
-        else:
-            y = jsl.solve_triangular(factor, rhs[..., None], lower=True)
-            x = jsl.solve_triangular(factor, y, lower=True, trans="T")[..., 0]
+        lower, reciprocals = factor
+        x = (ldl_solve if write_out else ldl_by_columns_solve)(lower, reciprocals, rhs)
         if _whole(group, m):
             accelerations = x[0]
         else:
@@ -207,6 +200,81 @@ def ldl_solve(lower, reciprocals, rhs):
         x[i] = (y[i] * reciprocals[..., i]
                 - sum(lower[k][i] * x[k] for k in range(i + 1, m)))
     return jnp.stack(x, axis=-1)
+
+
+def ldl_by_columns(matrix):
+    """M = L D Lᵀ one column at a time, vectorised over leading axes:
+
+        D_j = M_jj − Σ_{k<j} L_jk² D_k,   L_ij = (M_ij − Σ_{k<j} L_ik L_jk D_k) / D_j   (i > j),
+
+    a loop of m steps of vector work (Golub and Van Loan, Matrix Computations, § 4.1), whose
+    program does not grow with m: for blocks too large to write out entry by entry (a chain
+    of 20 rods from T and V: first call 3.4 s, 311 ms a solve, against 3.1 s and 330 ms by
+    LAPACK; the columns written out as straight-line code 5 s and 324 ms). Not
+    LAPACK's Cholesky: jaxlib 0.10's batched LAPACK kernels split a large batch over XLA's
+    intra-op thread pool and block until it is done, so that two such kernels running at once
+    in one program (a solve and its derivative's, under `jax.vmap`) can each hold a thread
+    the other waits for, and the program never returns (`lapack_dtrsm_ffi` in
+    `jax::ParallelBatchMap`, seen on a 2-core machine). Returns (L (…, m, m) unit lower
+    triangular, 1/D (…, m), which pivots failed (…, m)); a failed pivot, as in `ldl`, has a
+    NaN reciprocal, which here spreads to every later column."""
+    m = matrix.shape[-1]
+    threshold = _threshold([matrix[..., j, j] for j in range(m)])
+    rows = jnp.arange(m)
+
+    def column(j, carry):  # Lᵀ's row j (L's column j), D_j and 1/D_j
+        upper, pivots, reciprocals = carry  # upper = Lᵀ, rows filled in turn
+        weighted = jnp.take(upper, j, axis=-1) * pivots  # L_jk D_k, zero for k ≥ j
+        pivot = jnp.take(jnp.take(matrix, j, axis=-1), j, axis=-1) - jnp.sum(
+            jnp.take(upper, j, axis=-1) * weighted, axis=-1)
+        reciprocal = jnp.where(pivot > threshold, 1 / pivot, jnp.nan)  # NaN: failed
+        entries = (jnp.take(matrix, j, axis=-1)
+                   - jnp.sum(upper * weighted[..., :, None], axis=-2)) * reciprocal[..., None]
+        entries = jnp.where(jnp.broadcast_to(rows > j, entries.shape), entries,
+                            jnp.broadcast_to(rows == j, entries.shape).astype(matrix.dtype))
+        upper = jax.lax.dynamic_update_index_in_dim(upper, entries[..., None, :], j, -2)
+        pivots = jax.lax.dynamic_update_index_in_dim(pivots, pivot[..., None], j, -1)
+        reciprocals = jax.lax.dynamic_update_index_in_dim(reciprocals, reciprocal[..., None],
+                                                          j, -1)
+        return upper, pivots, reciprocals
+
+    zeros = jnp.zeros(matrix.shape[:-1], matrix.dtype)
+    upper, _, reciprocals = jax.lax.fori_loop(0, m, column,
+                                              (jnp.zeros_like(matrix), zeros, zeros))
+    return jnp.swapaxes(upper, -1, -2), reciprocals, jnp.isnan(reciprocals)  # NaN: failed
+
+
+def ldl_by_columns_solve(lower, reciprocals, rhs):
+    """x = L⁻ᵀ D⁻¹ L⁻¹ f from `ldl_by_columns`, by column-oriented substitution (m vector
+    updates each way, straight-line code: one fused operation each), vectorised over leading
+    axes."""
+    m = rhs.shape[-1]
+    strict = lower - jnp.broadcast_to(jnp.eye(m, dtype=lower.dtype), lower.shape)
+
+    y = rhs
+    for j in range(m):  # L y = f: y_j is final, remove it from the rows below
+        y = y - strict[..., :, j] * y[..., j, None]
+    x = y * reciprocals
+    for j in reversed(range(m)):  # Lᵀ x = D⁻¹ y: x_j is final, remove it from the rows above
+        x = x - strict[..., j, :] * x[..., j, None]
+    return x
+
+
+def spd_solve(matrix, rhs, *, written_out=UNROLL_MAX):
+    """(H⁻¹ b, whether H is positive definite) for a symmetric H, b a vector (…, m) or
+    columns (…, m, k): LDLᵀ written out entry by entry up to `written_out`, by columns above
+    (`ldl_by_columns`)."""
+    if matrix.shape[-1] <= written_out:
+        lower, reciprocals, failed = ldl(matrix)
+        solve_with = ldl_solve
+    else:
+        lower, reciprocals, failed = ldl_by_columns(matrix)
+        solve_with = ldl_by_columns_solve
+    if rhs.ndim == matrix.ndim:  # columns
+        solution = jax.vmap(lambda b: solve_with(lower, reciprocals, b), -1, -1)(rhs)
+    else:
+        solution = solve_with(lower, reciprocals, rhs)
+    return solution, ~jnp.any(failed, axis=-1)
 
 
 def condition_number(mass_matrix):

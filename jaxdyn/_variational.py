@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._linalg import spd_solve
 from ._unroll import depends
 
 _Y = tuple  # (q, u)
@@ -281,7 +282,7 @@ def speeds_of_momentum(dynamics, t, q, guess, p, momentum, newton, max_steps):
 
     value, slope = jax.linearize(residual, guess)
     mass_matrix = jax.vmap(slope)(jnp.eye(guess.shape[0], dtype=guess.dtype))
-    speeds = guess - jnp.linalg.solve(mass_matrix, value)
+    speeds = guess - spd_solve(mass_matrix, value)[0]
     left = residual(speeds)
     scale = newton.atol + newton.rtol * jnp.max(jnp.abs(momentum))
     solved = jnp.max(jnp.abs(left)) <= scale

@@ -17,7 +17,7 @@ import jaxdyn._unroll
 from jaxdyn._dynamics import constant_mass_matrix, mass_matrix_blocks, straight_line_size
 from jaxdyn.rotations import planar_rotation
 
-from helpers import DOUBLE_PENDULUM, PENDULUM, assert_close
+from helpers import DOUBLE_PENDULUM, PENDULUM, assert_close, rod_chain
 
 DP = DOUBLE_PENDULUM
 
@@ -272,3 +272,75 @@ def test_a_singular_block_leaves_the_independent_accelerations_finite():
     np.testing.assert_allclose(a[1], -3.0 / 2.0 * 0.5, rtol=1e-15)
     with pytest.raises(RuntimeError, match="The mass matrix is singular"):
         pair.accelerations(0.0, q, np.zeros(2), p)
+
+
+# ---------------------------------------------------------------------------------------------
+# Large systems: factored column by column, in the program itself
+# ---------------------------------------------------------------------------------------------
+
+
+def test_a_large_system_matches_numpy_and_its_batched_derivative_calls_no_lapack_kernel():
+    """A chain of 20 rods from T and V (its mass matrix factored column by column, above the
+    size written out entry by entry): the accelerations of a batch of states equal
+    NumPy's solve of Lagrange's equations, M = ∂²T/∂q̇², f = ∂L/∂q − (∂²L/∂q̇∂q) q̇, formed
+    here by autodiff; a massless last rod is named singular. The vmapped Jacobian's program
+    calls no LAPACK kernel: jaxlib 0.10's batched kernels can deadlock when two run at once
+    (a solve and its derivative's), which left a shooting problem's solve hanging."""
+    n = 20
+    chain = rod_chain()
+    p = {"m": np.linspace(1.0, 2.0, n) / n, "l": np.linspace(1.0, 0.5, n) / n, "g": 9.81}
+    rng = np.random.default_rng(3)
+    qs, qds = rng.uniform(-1.0, 1.0, (3, n)), rng.uniform(-1.0, 1.0, (3, n))
+
+    def accelerations(q, qd):
+        return chain.accelerations(0.0, q, qd, p, throw=False)
+
+    got = jax.jit(jax.vmap(accelerations))(qs, qds)
+
+    def lagrangian(q, qd):
+        return chain.kinetic(q, qd, p) - chain.potential(q, p)
+
+    for q, qd, a in zip(qs, qds, np.asarray(got)):
+        mass = np.asarray(jax.hessian(lagrangian, argnums=1)(q, qd))
+        mixed = np.asarray(jax.jacfwd(jax.grad(lagrangian, argnums=1), argnums=0)(q, qd))
+        forcing = np.asarray(jax.grad(lagrangian, argnums=0)(q, qd)) - mixed @ qd
+        assert_close(a, np.linalg.solve(mass, forcing), rtol=1e-11, atol=1e-11)
+
+    program = jax.jit(jax.vmap(jax.jacfwd(accelerations))).lower(qs, qds).as_text()
+    assert "lapack" not in program.lower()
+    massless = {**p, "m": np.concatenate([p["m"][:-1], [0.0]])}
+    assert np.isnan(np.asarray(chain.accelerations(0.0, qs[0], qds[0], massless,
+                                                   throw=False))).all()
+    with pytest.raises(RuntimeError, match="The mass matrix is singular"):
+        chain.accelerations(0.0, qs[0], qds[0], massless)
+
+
+@pytest.mark.parametrize("size", [5, 13, 20])
+def test_symmetric_solves_match_numpy_and_flag_what_is_not_positive_definite(size):
+    """`spd_solve` (written out up to 8, by columns above) against NumPy on a batch of random
+    positive definite matrices, with one and several right-hand sides; an indefinite matrix
+    and a singular one are flagged; the derivative against a central difference."""
+    from jaxdyn._linalg import spd_solve
+    rng = np.random.default_rng(size)
+    a = rng.normal(size=(4, size, size))
+    h = a @ np.swapaxes(a, 1, 2) + size * np.eye(size)
+    b, columns = rng.normal(size=(4, size)), rng.normal(size=(4, size, 3))
+    x, positive = spd_solve(jnp.asarray(h), jnp.asarray(b))
+    assert_close(x, np.linalg.solve(h, b[..., None])[..., 0], rtol=1e-12, atol=1e-13)
+    assert_close(spd_solve(jnp.asarray(h), jnp.asarray(columns))[0],
+                 np.linalg.solve(h, columns), rtol=1e-12, atol=1e-13)
+    assert np.asarray(positive).all()
+    indefinite = np.diag(np.r_[np.ones(size - 1), -1.0])
+    singular = np.diag(np.r_[np.ones(size // 2), 0.0, np.ones(size - size // 2 - 1)])
+    for bad in (indefinite, singular):
+        x, positive = spd_solve(jnp.asarray(bad), jnp.ones(size))
+        assert not bool(positive) and np.isnan(np.asarray(x)).any()
+
+    def total(m):
+        return jnp.sum(spd_solve(m @ m.T + size * jnp.eye(size), jnp.asarray(b[0]))[0])
+
+    direction = rng.normal(size=(size, size))
+    step = 1e-6
+    difference = (total(a[0] + step * direction) - total(a[0] - step * direction)) / (2 * step)
+    assert_close(jnp.sum(jax.grad(total)(jnp.asarray(a[0])) * direction), difference,
+                 rtol=1e-7)

@@ -21,6 +21,7 @@ import optimistix as optx
 from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._form.articulated import ArticulatedBody
+from .._linalg import spd_solve
 from .._form.controlled import Controlled, find_controlled
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
@@ -407,8 +408,7 @@ def _accelerations_jvp(dynamics, primals, tangents):
         return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
 
     _, d_residual = jax.jvp(residual, (q, u, r, p), (dq, du, dr, dp))
-    factor = jax.scipy.linalg.cho_factor(mass_matrix)
-    return ud, -jax.scipy.linalg.cho_solve(factor, d_residual)
+    return ud, -spd_solve(mass_matrix, d_residual)[0]
 
 
 def _cost_value(value, name):

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._linalg import ldl, ldl_solve
+from .._linalg import spd_solve
 
 _WRITTEN_OUT = 12  # inputs up to which the factorisation is straight-line code
 _BOX_ITERATIONS = 30
@@ -85,17 +85,11 @@ def _masked(matrix, free):
 
 
 def _cholesky_solve(matrix, rhs):
-    """(H⁻¹ b, whether H is positive definite) for a symmetric H: for the few inputs of most
-    problems by an LDLᵀ factorisation written out entry by entry (a LAPACK call costs more
-    than the arithmetic of a 7 × 7 factorisation, at every node of every sweep), else by
-    Cholesky."""
-    if matrix.shape[-1] > _WRITTEN_OUT:
-        factor = jnp.linalg.cholesky(matrix)
-        return jax.scipy.linalg.cho_solve((factor, True), rhs), jnp.all(jnp.isfinite(factor))
-    lower, reciprocals, failed = ldl(matrix)
-    column = rhs.ndim == 1
-    solution = ldl_solve(lower, reciprocals, rhs if column else rhs.T)
-    return (solution if column else solution.T), ~jnp.any(failed)
+    """(H⁻¹ b, whether H is positive definite) for a symmetric H by LDLᵀ (`spd_solve`):
+    written out entry by entry for the few inputs of most problems (a LAPACK call costs more
+    than the arithmetic of a 7 × 7 factorisation, at every node of every sweep), by columns
+    above."""
+    return spd_solve(matrix, rhs, written_out=_WRITTEN_OUT)
 
 
 def box_qp(hessian, gradient, lo, hi, start):
