@@ -83,6 +83,13 @@ def library_checks_as_nan():
         module.EQX_ON_ERROR = previous
 
 
+UNEXPLAINED_FAILURE = (
+    "The result is not finite (NaN or inf), and none of the causes checked for holds here:\n"
+    "{}\nThis should not happen: please report it, with the state below, to jaxdyn's issue "
+    "tracker."
+)
+
+
 def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=None, *,
              failed=None):
     """`x`, or an error if one of `checks` fails.
@@ -124,6 +131,7 @@ def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=N
         raise_ = functools.partial(_raise, messages, tuple(labels))
         return jax.pure_callback(raise_, jax.ShapeDtypeStruct((), jnp.bool_), preds,
                                  jax.lax.stop_gradient(tuple(values)),
+                                 jax.lax.stop_gradient(jnp.asarray(failed)),
                                  vmap_method="sequential")
 
     # `unvmap_any` keeps the `cond` a real branch under vmap: the host is only called when some
@@ -154,12 +162,19 @@ def _preds(listed):
     return jnp.stack([jnp.asarray(check[0]) for check in listed])
 
 
-def _raise(messages, labels, preds, values):
+def _raise(messages, labels, preds, values, failed):
     preds = np.asarray(preds)
-    if not preds.any():  # another batch member failed
-        return np.zeros((), np.bool_)
-    first = int(np.argmax(preds))
-    message = messages[first]
+    if not preds.any():
+        if not np.asarray(failed):  # another batch member failed
+            return np.zeros((), np.bool_)
+        # This one failed, and none of the causes it checks holds: say so rather than return
+        # the NaN silently, with the state of the first check that has one.
+        first = next((i for i, label in enumerate(labels) if label), 0)
+        message = UNEXPLAINED_FAILURE.format("\n".join(
+            "  - " + m.split(". ")[0].split(":")[0].rstrip(".") + "." for m in messages))
+    else:
+        first = int(np.argmax(preds))
+        message = messages[first]
     if labels[first]:
         described = ", ".join(f"{k} = {np.asarray(v).tolist()}"
                               for k, v in zip(labels[first], values[first]))

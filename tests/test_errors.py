@@ -712,3 +712,29 @@ def test_the_default_step_budget_follows_a_long_interval_when_called_eagerly():
     staged = jax.jit(lambda q0: jaxdyn.simulate(system, q0, jnp.zeros(1), t1=40_000.0,
                                                 save="q", throw=False).result)(jnp.ones(1))
     assert staged == jaxdyn.RESULTS.max_steps_reached
+
+
+def test_a_nan_whose_cause_no_check_finds_still_raises_and_says_what_was_checked():
+    """The guard of `accelerations` and `simulate`: a failure (here a NaN in the result) for
+    which none of the listed causes holds raises, with the causes it ruled out and the state,
+    rather than returning the NaN silently; eager, compiled, and for the failing member of a
+    vmapped batch (the others pass)."""
+    from jaxdyn._errors import error_if, reports_state
+    from jaxdyn._linalg import NONFINITE_FORCING, SINGULAR_MASS_MATRIX
+
+    def check(x):
+        return error_if(x, lambda: [(jnp.zeros((), bool), SINGULAR_MASS_MATRIX),
+                                    (jnp.zeros((), bool), NONFINITE_FORCING)],
+                        (0.5, x, x), failed=~jnp.all(jnp.isfinite(x)))
+
+    bad = np.array([np.nan, 1.0])
+    expected = (r"^The result is not finite \(NaN or inf\), and none of the causes checked "
+                r"for holds here:\n  - The mass matrix is singular(.|\n)*contains NaN or "
+                r"inf\.(.|\n)*It happened at t = 0.5, q = \[nan, 1.0\]")
+    for guarded in (reports_state(check), reports_state(jax.jit(check))):
+        with pytest.raises(RuntimeError, match=expected):
+            guarded(bad)
+    batched = reports_state(jax.jit(jax.vmap(check)))
+    np.testing.assert_array_equal(batched(np.ones((3, 2))), np.ones((3, 2)))
+    with pytest.raises(RuntimeError, match=r"It happened at t = 0.5, q = \[nan, 1.0\]"):
+        batched(np.stack([np.ones(2), bad]))
