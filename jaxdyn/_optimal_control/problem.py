@@ -21,11 +21,11 @@ import optimistix as optx
 from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._form.articulated import ArticulatedBody
-from .._linalg import spd_solve
 from .._form.controlled import Controlled, find_controlled
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
 from .._form.kane import Kane
+from .._linalg import spd_solve
 from .._variational import (VariationalIntegrator, conjugate_momentum, discrete_forces,
                              newton_method, speeds_of_momentum)
 
