@@ -209,8 +209,9 @@ def ldl_by_columns(matrix):
 
     a loop of m steps of vector work (Golub and Van Loan, Matrix Computations, § 4.1), whose
     program does not grow with m: for blocks too large to write out entry by entry (a chain
-    of 20 rods from T and V: first call 3.4 s, 311 ms a solve, against 3.1 s and 330 ms by
-    LAPACK; the columns written out as straight-line code 5 s and 324 ms). Not
+    of 20 rods from T and V, 5 s simulated: first call 3.4 s, then 311 ms, against 3.1 s and
+    330 ms by LAPACK; the columns written out as straight-line code 5 s and 324 ms; a tree
+    chain of 20 by Kane's equations compiles longer, 9 s against 5.5). Not
     LAPACK's Cholesky: jaxlib 0.10's batched LAPACK kernels split a large batch over XLA's
     intra-op thread pool and block until it is done, so that two such kernels running at once
     in one program (a solve and its derivative's, under `jax.vmap`) can each hold a thread
