@@ -117,6 +117,7 @@ from ._solution import (
 from ._system.bodies import Particle as Particle, RigidBody as RigidBody
 from ._system.loads import BodyTorque as BodyTorque, PointForce as PointForce
 from ._system.frames import (
+    HeldPoints as HeldPoints,
     centre_of_mass as centre_of_mass,
     centre_of_mass_jacobian as centre_of_mass_jacobian,
     centre_of_mass_velocity as centre_of_mass_velocity,

@@ -219,6 +219,96 @@ def test_a_points_jacobian_gives_its_velocity(hopper):
                              atol=1e-12 * (1 + np.max(np.abs(velocity))))
 
 
+def _held_point_terms(robot, q_pin, v_pin, frame, point):
+    """Pinocchio's world position, linear Jacobian (3, nv) and classical acceleration at zero
+    joint acceleration of a point fixed in a frame: the frame's own, carried to the point by
+    rigid-body kinematics (d = R point: v_P = v + ω × d, a_P = a + ω̇ × d + ω × (ω × d))."""
+    model, data = robot.model, robot.data
+    fid = model.getFrameId(frame)
+    pin.forwardKinematics(model, data, q_pin, v_pin, np.zeros(model.nv))
+    pin.updateFramePlacements(model, data)
+    pin.computeJointJacobians(model, data, q_pin)
+    placement = data.oMf[fid]
+    d = placement.rotation @ np.asarray(point)
+    jacobian = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+    skew = np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+    omega = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED).angular
+    classical = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+    curvature = classical.linear + np.cross(classical.angular, d) + np.cross(
+        omega, np.cross(omega, d))
+    return placement.translation + d, jacobian[:3] - skew @ jacobian[3:], curvature
+
+
+def test_held_points_against_pinocchio(hopper):
+    """Points held in the world (`jaxdyn.HeldPoints`, the foot's sole and the slider):
+    the accelerations and constraint forces of Lagrange's equations of the first kind, without
+    and with Baumgarte's terms, against the KKT system [M −Jᵀ; J 0] formed in NumPy from
+    Pinocchio's mass matrix, bias forces, frame Jacobians and classical accelerations, at
+    random states (which violate the holds, so that Baumgarte's position and velocity terms
+    count); and the multipliers, the holds' forces on the points, accelerate the centre of
+    mass as Newton's second law says."""
+    tree, p, model, data = hopper.tree, hopper.p, hopper.model, hopper.data
+    frames, points = ["foot", "slider"], np.array([[0.01, 0.0, -0.03], [0.0, 0.02, 0.0]])
+    holds = np.array([[0.1, -0.2, -0.5], [-0.1, 0.0, 0.05]])
+    held = jaxdyn.HeldPoints(tree, frames, holds, points)
+    (q_pin, v_pin, _), (q, u, _) = hopper.random_states(3, seed=11)
+    perm = hopper.permutation
+    for stabilisation in (None, jaxdyn.Baumgarte(3.0, 5.0)):
+        constrained = jaxdyn.Constrained(jaxdyn.ArticulatedBody(tree), holonomic=held,
+                                         stabilisation=stabilisation)
+        ours = jax.jit(jax.vmap(lambda q, u: (constrained.accelerations(0.0, q, u, p),
+                                              constrained.constraint_forces(0.0, q, u, p),
+                                              constrained.position_violation(0.0, q, u, p),
+                                              constrained.multipliers(0.0, q, u, p))))
+        accelerations, forces, violation, ours_multipliers = ours(q, u)
+        for k in range(3):
+            terms = [_held_point_terms(hopper, q_pin[k], v_pin[k], f, x)
+                     for f, x in zip(frames, points)]
+            position = np.concatenate([t[0] for t in terms]) - holds.ravel()
+            jacobian = np.concatenate([t[1] for t in terms])
+            rhs = -np.concatenate([t[2] for t in terms])
+            if stabilisation is not None:
+                rhs -= 2 * 3.0 * jacobian @ v_pin[k] + 5.0**2 * position
+            mass = pin.crba(model, data, q_pin[k])
+            mass = np.triu(mass) + np.triu(mass, 1).T
+            bias = pin.nonLinearEffects(model, data, q_pin[k], v_pin[k])
+            m, c = model.nv, jacobian.shape[0]
+            kkt = np.block([[mass, -jacobian.T], [jacobian, np.zeros((c, c))]])
+            solution = np.linalg.solve(kkt, np.concatenate([-bias, rhs]))
+            a_pin, multipliers = solution[:m], solution[m:]
+            scale = 1 + np.max(np.abs(a_pin))
+            assert_close(np.asarray(accelerations[k]) @ perm.T, a_pin, rtol=0,
+                         atol=1e-10 * scale)
+            assert_close(np.asarray(forces[k]) @ perm.T, jacobian.T @ multipliers, rtol=0,
+                         atol=1e-10 * (1 + np.max(np.abs(jacobian.T @ multipliers))))
+            assert_close(violation[k], position, rtol=0, atol=1e-12)
+            # Newton's second law for the whole robot: the holds' forces and gravity
+            # accelerate its centre of mass (Pinocchio's, at the accelerations found).
+            pin.centerOfMass(model, data, q_pin[k], v_pin[k], a_pin)
+            total = pin.computeTotalMass(model)
+            assert_close(np.asarray(ours_multipliers[k]).reshape(-1, 3).sum(axis=0),
+                         total * (data.acom[0] - model.gravity.linear), rtol=1e-10)
+
+
+def test_held_points_name_a_tree_of_another_size(hopper):
+    """HeldPoints of one tree on a system of another size, a hold of the wrong shape and
+    moving holds are named at trace time."""
+    upright = np.zeros(hopper.tree.num_coordinates)
+    upright[3] = 1.0  # the base's unit quaternion (w, x, y, z)
+    held = jaxdyn.HeldPoints.at(hopper.tree, ["foot"], upright, hopper.p)
+    other, other_p = jaxdyn.from_urdf(robot_file("panda.urdf"))
+    with pytest.raises(ValueError, match="HeldPoints holds points of a tree with 10 coord"):
+        jaxdyn.Constrained(jaxdyn.ArticulatedBody(other), holonomic=held).accelerations(
+            0.0, jnp.zeros(other.num_coordinates), jnp.zeros(other.num_speeds), other_p)
+    with pytest.raises(ValueError, match=r"positions must have shape \(2, 3\)"):
+        jaxdyn.HeldPoints(hopper.tree, ["foot", "slider"], np.zeros(3))
+    with pytest.raises(ValueError, match="scleronomic"):
+        jaxdyn.Constrained(jaxdyn.ArticulatedBody(hopper.tree), holonomic=held,
+                           time_dependent=True)
+    with pytest.raises(ValueError, match="no link named 'fot'"):
+        jaxdyn.HeldPoints(hopper.tree, ["fot"], np.zeros((1, 3)))
+
+
 @pytest.mark.slow
 def test_quadruped_against_pinocchio():
     _compare_with_pinocchio(Robot.load(robot_file("solo12.urdf"), floating=True),

@@ -15,6 +15,7 @@ from .._errors import error_if
 from .._linalg import factorise, solve
 from .._solution import ConstraintRecord
 from .._state import check_vector, public_method
+from .._system.frames import HeldPoints
 
 NOT_ON_CONSTRAINTS = (
     "Could not place the state on the constraints: after the Gauss–Newton iterations the "
@@ -135,7 +136,8 @@ class Constrained(AbstractDynamics):
 
     - `dynamics`: the unconstrained formulation (`Lagrangian`, `Kane`, `GibbsAppell`,
       `ArticulatedBody`, …); its coordinates may be redundant (Cartesian, closed loops).
-    - `holonomic`: φ(q, p) → (m₁,), or None.
+    - `holonomic`: φ(q, p) → (m₁,), or `jaxdyn.HeldPoints` (points of a tree's links held
+      in the world, whose C and γ come from the tree's recursions), or None.
     - `pfaffian`: (q, p) → A (m₂, n), or (A, b) with b (m₂,), for A q̇ = b; or None.
     - `time_dependent`: if True both take t first: φ(t, q, p), (t, q, p) → (A, b)
       (rheonomic constraints, a bead on a driven wire).
@@ -158,6 +160,9 @@ class Constrained(AbstractDynamics):
                              f"constrain, got {type(self.dynamics).__name__}.")
         if self.holonomic is None and self.pfaffian is None:
             raise ValueError("Constrained needs holonomic and/or pfaffian constraints.")
+        if isinstance(self.holonomic, HeldPoints) and self.time_dependent:
+            raise ValueError("HeldPoints are held at fixed places (scleronomic): give "
+                             "time_dependent=False, or a function φ(t, q, p) for moving holds.")
         if self.redundant not in ("error", "least_squares"):
             raise ValueError(f"redundant must be 'error' or 'least_squares', got "
                              f"{self.redundant!r}.")
@@ -190,17 +195,21 @@ class Constrained(AbstractDynamics):
                              f"{q.shape[0]} coordinates, got {matrix.shape}.")
         return matrix, vector(rhs, "pfaffian constraint b", matrix.shape[:1])
 
-    def _velocity_residual(self, t, q, u, p):
-        """g(t, q, u) = C u − b: φ̇ along q̇ = K u, then A q̇ − b."""
+    def _velocity_residual(self, t, q, u, p, *, held=True):
+        """g(t, q, u) = C u − b: φ̇ along q̇ = K u, then A q̇ − b (without the rows of
+        `HeldPoints` unless `held`)."""
         qd = self.dynamics.coordinate_rates(t, q, u, p)
         rows = []
-        if self.holonomic is not None:
+        if isinstance(self.holonomic, HeldPoints):
+            if held:
+                rows.append(self.holonomic.velocity_terms(q, u, p)[0] @ u)
+        elif self.holonomic is not None:
             rows.append(jax.jvp(lambda t, q: self._phi(t, q, p), (t, q),
                                 (jnp.ones_like(t), qd))[1])
         if self.pfaffian is not None:
             matrix, rhs = self._pfaffian(t, q, p)
             rows.append(matrix @ qd - rhs)
-        return jnp.concatenate(rows)
+        return jnp.concatenate(rows) if rows else jnp.zeros((0,), q.dtype)
 
     def _check(self, t, q, u):
         q, u = check_vector(q, "q"), check_vector(u, "u")
@@ -209,9 +218,17 @@ class Constrained(AbstractDynamics):
     def constraint_terms(self, t, q, u, p):
         """(C, g, γ, φ): the constraint Jacobian in the speeds, the velocity residual, the
         curvature term and the holonomic residual, at one state."""
-        g, curvature = jax.jvp(lambda t, q: self._velocity_residual(t, q, u, p), (t, q),
+        def residual(t, q, u):  # the rows differentiated here: all but those of HeldPoints
+            return self._velocity_residual(t, q, u, p, held=False)
+
+        g, curvature = jax.jvp(lambda t, q: residual(t, q, u), (t, q),
                                (jnp.ones_like(t), self.dynamics.coordinate_rates(t, q, u, p)))
-        jacobian = jax.jacfwd(lambda u: self._velocity_residual(t, q, u, p))(u)
+        jacobian = jax.jacfwd(lambda u: residual(t, q, u))(u)
+        if isinstance(self.holonomic, HeldPoints):  # first-order kinematics of the tree
+            held, held_curvature = self.holonomic.velocity_terms(q, u, p)
+            jacobian = jnp.concatenate([held, jacobian])
+            g = jnp.concatenate([held @ u, g])
+            curvature = jnp.concatenate([held_curvature, curvature])
         return jacobian, g, curvature, self._phi(t, q, p)
 
     def _right_hand_side(self, t, q, u, p):

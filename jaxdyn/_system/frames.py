@@ -18,6 +18,7 @@ about the centre of mass and the linear momentum, in world axes; h_G = A_G(q) u 
 centroidal momentum matrix.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -216,3 +217,117 @@ def centroidal_momentum_matrix(tree: RigidBodyTree, q, p=None, *, include_fixed=
     q, _, _ = _checked(tree, q)
     zero = jnp.zeros(tree.num_speeds, q.dtype)
     return jax.jacfwd(lambda u: _centroidal_momentum(tree, q, u, p, include_fixed))(zero)
+
+
+class HeldPoints(eqx.Module):
+    r"""Points of a tree's links held at fixed places in the world, as holonomic constraints
+    for `jaxdyn.Constrained` (feet on the ground, a hand on a handle):
+
+        φ(q) = r_P(q) − r_P* = 0        (three rows per point, in world axes),
+
+    with the velocity terms that Lagrange's equations of the first kind need taken from the
+    tree's recursions instead of by differentiating φ:
+
+        C = J_v(q)    (rows v of each point's `frame_jacobian`, φ̇ = C u),
+        γ = J̇_v u    (each point's classical acceleration at u̇ = 0, `frame_acceleration`),
+
+    as Pinocchio's and Crocoddyl's 3-D contact models take them (Featherstone, Rigid Body
+    Dynamics Algorithms, 2008, §8.3). A function of `frame_pose` given as `holonomic` defines
+    the same constraints, but `Constrained` then forms C and γ by differentiating it once and
+    twice, and a trajectory optimiser's expansion (`jaxdyn.solve_optimal_control`)
+    differentiates those again: here the expansion differentiates first-order kinematics.
+
+    **Arguments:**
+
+    - `tree`: the `jaxdyn.RigidBodyTree` whose coordinates and speeds the constrained
+      formulation has (`ArticulatedBody(tree)`, `Kane(tree)`, …, possibly `Controlled`).
+    - `frames`: the links (names or indices), one per point.
+    - `positions` (k, 3): where the points are held, in world axes.
+    - `points` (k, 3): each point in its link's axes (default the links' origins).
+
+    `HeldPoints.at(tree, frames, q, p)` holds the points where they are at coordinates q.
+    """
+
+    tree: RigidBodyTree
+    frames: tuple[int, ...] = eqx.field(static=True)
+    positions: jax.Array
+    points: jax.Array
+
+    def __init__(self, tree: RigidBodyTree, frames, positions, points=None):
+        if not isinstance(tree, RigidBodyTree):
+            raise ValueError(f"HeldPoints needs a jaxdyn.RigidBodyTree, got "
+                             f"{type(tree).__name__}.")
+        if isinstance(frames, (str, int, np.integer)):
+            frames = [frames]
+        self.tree = tree
+        self.frames = tuple(_index(tree, frame) for frame in frames)
+        k = len(self.frames)
+        positions = jnp.asarray(positions)
+        if not jnp.issubdtype(positions.dtype, jnp.floating):
+            positions = positions.astype(float)
+        if positions.shape != (k, 3):
+            raise ValueError(f"positions must have shape ({k}, 3), one world point per frame, "
+                             f"got {positions.shape}.")
+        self.positions = positions
+        points = jnp.zeros((k, 3), positions.dtype) if points is None else \
+            jnp.asarray(points, positions.dtype)
+        if points.shape != (k, 3):
+            raise ValueError(f"points must have shape ({k}, 3), one point in its link's axes "
+                             f"per frame, got {points.shape}.")
+        self.points = points
+
+    @classmethod
+    def at(cls, tree: RigidBodyTree, frames, q, p=None, *, points=None) -> "HeldPoints":
+        """The points held where they are at coordinates q."""
+        if isinstance(frames, (str, int, np.integer)):
+            frames = [frames]
+        frames = [_index(tree, frame) for frame in frames]  # a misspelt name, named first
+        q = jnp.asarray(q)
+        points = jnp.zeros((len(frames), 3), q.dtype) if points is None else \
+            jnp.asarray(points, q.dtype)
+        if points.shape != (len(frames), 3):
+            raise ValueError(f"points must have shape ({len(frames)}, 3), got {points.shape}.")
+        positions = jnp.stack([frame_pose(tree, frame, q, p, point=point)[1]
+                               for frame, point in zip(frames, points)])
+        return cls(tree, frames, positions, points)
+
+    def _checked(self, q, u=None):
+        if q.shape != (self.tree.num_coordinates,) or (
+                u is not None and u.shape != (self.tree.num_speeds,)):
+            raise ValueError(
+                f"HeldPoints holds points of a tree with {self.tree.num_coordinates} coordinates "
+                f"and {self.tree.num_speeds} speeds; the constrained system has q of shape "
+                f"{q.shape}" + ("" if u is None else f" and u of shape {u.shape}") + ". Give "
+                "Constrained the formulation of this tree (ArticulatedBody(tree), Kane(tree), "
+                "…, possibly Controlled).")
+
+    def __call__(self, q, p=None):
+        """φ(q) (3k,): each point's position less where it is held."""
+        self._checked(q)
+        t = jnp.zeros((), q.dtype)
+        rows = []
+        for frame, point, position in zip(self.frames, self.points, self.positions):
+            chain, q_index, _ = _ancestors(self.tree, frame)
+            rotations, origins = chain.link_poses(t, q[q_index], p)
+            rows.append(origins[-1] + rotations[-1] @ point.astype(q.dtype) - position)
+        return jnp.concatenate(rows)
+
+    def velocity_terms(self, q, u, p=None):
+        """(C (3k, m), γ (3k,)): the rows of φ̇ = C u and the curvature γ = J̇ u, so that
+        φ̈ = C u̇ + γ."""
+        self._checked(q, u)
+        t = jnp.zeros((), q.dtype)
+        jacobians, curvatures = [], []
+        for frame, point in zip(self.frames, self.points):
+            chain, q_index, u_index = _ancestors(self.tree, frame)
+            point, q_chain, u_chain = point.astype(q.dtype), q[q_index], u[u_index]
+            rotations, origins = chain.link_poses(t, q_chain, p)
+            where = origins[-1] + rotations[-1] @ point
+            _, velocity = world_subspaces(chain, rotations, origins, where)
+            jacobians.append(jnp.zeros((3, self.tree.num_speeds), q.dtype)
+                             .at[:, u_index].set(velocity.T))
+            qd = chain.coordinate_rates(t, q_chain, u_chain, p)
+            _, rates = jax.jvp(lambda q: _velocity(chain, point, "world", q, u_chain, p),
+                               (q_chain,), (qd,))
+            curvatures.append(rates[3:])
+        return jnp.concatenate(jacobians), jnp.concatenate(curvatures)
