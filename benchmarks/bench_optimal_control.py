@@ -5,6 +5,7 @@ Run: python benchmarks/bench_optimal_control.py            (about 5 minutes on 2
                                                             them compiling the Panda's solves)
      python benchmarks/bench_optimal_control.py --quick    (no batch of 1024)
      python benchmarks/bench_optimal_control.py --record   (write results/optimal_control.csv)
+     python benchmarks/bench_optimal_control.py --only anymal  (one problem, not recorded)
 
 Needs the test extras and Crocoddyl (`pip install crocoddyl`) built against the installed
 Pinocchio: crocoddyl 3.2.1 needs pin 4.0.0 (with pin 4.1 its dynamics lose gravity; the
@@ -21,6 +22,14 @@ both libraries and to reach the same optimum):
 - double pendulum: fully actuated, swung up from hanging to upright, state tracking and input
   cost, unbounded, N = 100, Δt = 0.01 s, semi-implicit Euler. Guess: zero torques.
   Crocoddyl: `SolverFDDP`.
+- ANYmal-C, feet held: the floating-base quadruped moves its base by (3, 2, −5) cm in 0.4 s
+  with its four feet held where they stand (`jaxdyn.HeldPoints` with Baumgarte's terms;
+  Crocoddyl's `ContactModel3D` and contact forward dynamics, the same equations to round-off
+  in the test), N = 20, Δt = 0.02 s, semi-implicit Euler (the base's rotation stepped along
+  the quaternion's rate in jaxdyn, along SE(3)'s exponential in Crocoddyl: the optima differ
+  by that), costs on the base's position, the speeds and the torques. Guess: the quasi-static
+  torques of the stance (Crocoddyl's `quasiStatic`). Crocoddyl: `SolverFDDP`. One solve
+  only: jaxdyn's first call compiles for about 1.5 minutes.
 
 Both solvers start from the rollout of the same guess, declared feasible to Crocoddyl
 (`solve(xs, us, maxiter, isFeasible=True)`: from an infeasible start `SolverBoxFDDP` takes
@@ -66,7 +75,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), os.pardir, "tests"))
 from _results import Recorder  # noqa: E402
 from _timing import interleaved  # noqa: E402
 from test_crocoddyl import (  # noqa: E402
-    N, crocoddyl_mismatch, double_pendulum_problem, panda_problem)
+    N, anymal_problem, crocoddyl_mismatch, double_pendulum_problem, panda_problem)
 
 MAX_ITERATIONS = 200
 ROUNDS = 5
@@ -100,6 +109,16 @@ def double_pendulum():
                 guesses=lambda q0s: np.zeros((len(q0s), N, 2)))
 
 
+def anymal():
+    case = anymal_problem()
+    joints = case["perm"][6:, 6:]  # Pinocchio's joint order from jaxdyn's
+    return dict(name="ANYmal-C, feet held", problem=case["problem"], p=case["p"],
+                q0=case["q0"], num_speeds=18, spread=0.0, reference=case["reference"],
+                bounded=False, batches=(),
+                guesses=lambda q0s: np.tile(case["guess"], (len(q0s), 1, 1)),
+                crocoddyl_start=lambda q0, guess: (case["x0"], guess @ joints.T))
+
+
 # -- the solvers -------------------------------------------------------------------------------
 
 class CrocoddylSolves:
@@ -112,12 +131,16 @@ class CrocoddylSolves:
         kind = crocoddyl.SolverBoxFDDP if case["bounded"] else crocoddyl.SolverFDDP
         self.solver = kind(self.problem)
         self.nv = self.problem.runningModels[0].state.nv
+        # jaxdyn's start and guess in Crocoddyl's state and input (the same but for a floating
+        # base, whose quaternion Pinocchio stores last, and the joints' order).
+        self.start = case.get("crocoddyl_start", lambda q0, guess: (
+            np.concatenate([q0, np.zeros(self.nv)]), guess))
 
     def __call__(self, q0s, guesses):
         self.problem.nthreads = self.threads
         out = []
         for q0, guess in zip(q0s, guesses):
-            self.problem.x0 = np.concatenate([q0, np.zeros(self.nv)])
+            self.problem.x0, guess = self.start(q0, guess)
             us = list(guess)
             self.solver.solve(self.problem.rollout(us), us, MAX_ITERATIONS, True)
             out.append((self.solver.cost, self.solver.iter))
@@ -127,9 +150,10 @@ class CrocoddylSolves:
 def jaxdyn_solve(case):
     """q0 (n,), guess (N, k) → (cost, iterations, status) of jaxdyn's iLQR, jitted."""
     problem, p = case["problem"], case["p"]
+    num_speeds = case.get("num_speeds", case["q0"].shape[0])
 
     def solve(q0, guess):
-        solution = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros_like(q0), p,
+        solution = jaxdyn.solve_optimal_control(problem, q0, jnp.zeros(num_speeds, q0.dtype), p,
                                                 inputs=guess, solver=jaxdyn.ILQR(
                                                     max_iterations=MAX_ITERATIONS))
         return solution.cost, solution.iterations, solution.status
@@ -256,7 +280,13 @@ def main():
     recorder = Recorder("optimal_control")
     print(f"jax {jax.__version__}, crocoddyl {importlib.metadata.version('crocoddyl')}, pin "
           f"{importlib.metadata.version('pin')}, {os.cpu_count()} cores")
-    for make in (double_pendulum, panda):
+    makes = (double_pendulum, panda, anymal)
+    if "--only" in sys.argv:  # one problem (not with --record, which writes every row)
+        wanted = sys.argv[sys.argv.index("--only") + 1]
+        makes = tuple(make for make in makes if make.__name__ == wanted)
+        if not makes or "--record" in sys.argv:
+            sys.exit("--only takes double_pendulum, panda or anymal, without --record")
+    for make in makes:
         case = make()
         single(case, recorder)
         if case["name"] == "double pendulum":  # the Panda's MPC: examples/optimal_control.py

@@ -255,6 +255,114 @@ def double_pendulum_problem(directory):
                 reference=reference)
 
 
+# -- ANYmal-C shifting its base, its four feet held ------------------------------------------
+
+ANYMAL = "anymal_c_simple_description/urdf/anymal.urdf"
+FEET = ["LF_FOOT", "RF_FOOT", "LH_FOOT", "RH_FOOT"]
+STANCE = np.array([-0.1, 0.7, -1.0, 0.1, 0.7, -1.0, -0.1, -0.7, 1.0, 0.1, -0.7, 1.0])
+BASE_SHIFT = np.array([0.03, 0.02, -0.05])
+ANYMAL_N, ANYMAL_DT = 20, 0.02
+ALPHA, BETA = 10.0, 10.0  # Baumgarte's rates; Crocoddyl's gains are (β², 2α)
+# Running: the base's position, every speed, the joint torques; terminal: position, speeds.
+W_BASE, W_SPEED, W_TORQUE, W_BASE_N, W_SPEED_N = 1e2, 1.0, 1e-4, 1e4, 1e2
+
+
+def anymal_problem():
+    """ANYmal-C (example-robot-data) moving its base by `BASE_SHIFT` in 0.4 s with its four feet
+    held where they stand (`jaxdyn.HeldPoints` with Baumgarte's terms; Crocoddyl's
+    `ContactModel3D` in world-aligned axes with gains (β², 2α)), semi-implicit Euler at 20 ms:
+    jaxdyn's `problem`, `p`, `q0` and `guess` (the quasi-static torques that hold the stance,
+    Crocoddyl's `quasiStatic`), Crocoddyl's problem `reference`, its `x0` and `their_guess`
+    (Pinocchio's joint order), the speed permutation `perm` (v_pin = perm u) and Crocoddyl's
+    continuous contact dynamics `contact_dynamics`.
+
+    The discrete steps differ in the base's rotation: Crocoddyl moves it along SE(3)'s
+    exponential, jaxdyn's semi-implicit Euler along q̇ = K(q) u (the quaternion's rate), which
+    differ by O(Δt²) per step."""
+    from robots import Robot  # needs Pinocchio, as this module does
+
+    robot = Robot.load(jaxdyn.example_robot_urdf(ANYMAL), floating=True)
+    tree, p, model = robot.tree, robot.p, robot.model
+    joints = robot.permutation[6:, 6:]  # Pinocchio's joint order from jaxdyn's
+    q0 = np.concatenate([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], STANCE])
+    held = jaxdyn.HeldPoints.at(tree, FEET, q0, p)
+    plant = jaxdyn.Constrained(
+        jaxdyn.Controlled(jaxdyn.ArticulatedBody(tree), input_map=list(range(6, 18))),
+        holonomic=held, stabilisation=jaxdyn.Baumgarte(ALPHA, BETA))
+    target = jnp.asarray(BASE_SHIFT)
+
+    def running(q, u, r, p):
+        return jnp.concatenate([np.sqrt(W_BASE) * (q[:3] - target), np.sqrt(W_SPEED) * u,
+                                np.sqrt(W_TORQUE) * r])
+
+    def terminal(q, u, p):
+        return jnp.concatenate([np.sqrt(W_BASE_N) * (q[:3] - target), np.sqrt(W_SPEED_N) * u])
+
+    problem = jaxdyn.ShootingProblem(plant, running, terminal, num_nodes=ANYMAL_N,
+                                     dt=ANYMAL_DT, discretisation=jaxdyn.SemiImplicitEuler())
+
+    state = crocoddyl.StateMultibody(model)
+    actuation = crocoddyl.ActuationModelFloatingBase(state)
+    nu, base = actuation.nu, model.getFrameId("base")
+    x0 = np.concatenate([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], joints @ STANCE,
+                         np.zeros(model.nv)])
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, x0[:model.nq])
+    speeds = np.concatenate([np.zeros(model.nv), np.ones(model.nv)])
+
+    def action(weights, dt):
+        contacts = crocoddyl.ContactModelMultiple(state, nu)
+        for foot in FEET:
+            frame = model.getFrameId(foot)
+            contacts.addContact(foot, crocoddyl.ContactModel3D(
+                state, frame, data.oMf[frame].translation.copy(), pin.LOCAL_WORLD_ALIGNED, nu,
+                np.array([BETA**2, 2 * ALPHA])))
+        costs = crocoddyl.CostModelSum(state, nu)
+        w_base, w_speed, w_torque = weights
+        costs.addCost("base", crocoddyl.CostModelResidual(
+            state, crocoddyl.ActivationModelQuad(3),
+            crocoddyl.ResidualModelFrameTranslation(state, base, BASE_SHIFT, nu)), w_base)
+        costs.addCost("speed", crocoddyl.CostModelResidual(
+            state, crocoddyl.ActivationModelWeightedQuad(speeds),
+            crocoddyl.ResidualModelState(state, x0, nu)), w_speed)
+        if w_torque:
+            costs.addCost("torque", crocoddyl.CostModelResidual(
+                state, crocoddyl.ActivationModelQuad(nu),
+                crocoddyl.ResidualModelControl(state, nu)), w_torque)
+        dynamics = crocoddyl.DifferentialActionModelContactFwdDynamics(
+            state, actuation, contacts, costs, 0.0, True)
+        return crocoddyl.IntegratedActionModelEuler(dynamics, dt), dynamics
+
+    (running_model, contact_dynamics), (terminal_model, _) = (
+        action((W_BASE, W_SPEED, W_TORQUE), ANYMAL_DT), action((W_BASE_N, W_SPEED_N, 0.0), 0.0))
+    reference = crocoddyl.ShootingProblem(x0, [running_model] * ANYMAL_N, terminal_model)
+    reference.nthreads = 1
+    their_guess = np.array(reference.quasiStatic([x0] * ANYMAL_N))
+    return dict(problem=problem, p=p, q0=q0, guess=their_guess @ joints, reference=reference,
+                x0=x0, their_guess=their_guess, perm=robot.permutation, robot=robot,
+                contact_dynamics=contact_dynamics, plant=plant)
+
+
+def test_held_feet_are_crocoddyls_contact_dynamics():
+    """Lagrange's equations of the first kind with ANYmal-C's feet held (`HeldPoints`,
+    Baumgarte's terms) are Crocoddyl's contact dynamics (`ContactModel3D` with gains (β², 2α),
+    `DifferentialActionModelContactFwdDynamics`): the accelerations at random states and
+    torques, away from the holds, to round-off."""
+    case = anymal_problem()
+    robot, plant, p, perm = case["robot"], case["plant"], case["p"], case["perm"]
+    dynamics = case["contact_dynamics"]
+    data = dynamics.createData()
+    (q_pin, v_pin, _), (q, u, _) = robot.random_states(3, seed=2)
+    torques = np.random.default_rng(3).normal(size=(3, 12)) * 20
+    ours = jax.jit(jax.vmap(lambda q, u, r: plant.with_inputs(r).accelerations(0.0, q, u, p)))(
+        q, u, torques)
+    for k in range(3):
+        dynamics.calc(data, np.concatenate([q_pin[k], v_pin[k]]), perm[6:, 6:] @ torques[k])
+        theirs = data.xout.copy()
+        np.testing.assert_allclose(np.asarray(ours[k]) @ perm.T, theirs, rtol=0,
+                                   atol=1e-9 * (1 + np.max(np.abs(theirs))))
+
+
 @pytest.fixture(scope="module")
 def panda():
     case = panda_problem()

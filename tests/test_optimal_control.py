@@ -12,7 +12,7 @@ import scipy.linalg
 import scipy.optimize
 
 import jaxdyn
-from helpers import compiles
+from helpers import central_difference, compiles
 from test_control import CART_POLE, cart_pole_T, cart_pole_V
 
 # -- a chain of two masses and springs, pushed on each mass: linear ---------------------------
@@ -551,6 +551,29 @@ def test_double_pendulum_swings_up_and_is_held():
                           rtol=1e-10, atol=1e-10, ts=jnp.linspace(0.0, 3.4, 86))
     np.testing.assert_allclose(run.q[:61], plan.q, atol=2e-2)  # the continuous feedback
     np.testing.assert_allclose(run.q[-10:], jnp.broadcast_to(upright, (10, 2)), atol=1e-3)
+
+
+def test_a_constrained_step_differentiates_as_finite_differences():
+    """The derivative of a shooting problem's step of a constrained system (a pendulum as a
+    particle on its rod, φ a function, Baumgarte's terms; RK4's four stages), formed from the
+    residuals of Lagrange's equations of the first kind, against central differences."""
+    p = dict(m=1.3, g=9.81, l=0.8)
+    particle = jaxdyn.Constrained(
+        jaxdyn.Controlled(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * p["m"] * qd @ qd,
+                                            lambda q, p: p["m"] * p["g"] * q[1]),
+                          input_map=[0]),
+        holonomic=lambda q, p: jnp.array([q @ q - p["l"] ** 2]),
+        stabilisation=jaxdyn.Baumgarte(2.0, 3.0))
+    problem = jaxdyn.ShootingProblem(particle, lambda q, u, r, p: r, num_nodes=1, dt=0.05)
+    z = np.array([0.5, -0.7, 0.3, 0.1, 0.4])  # q, u off the rod, and the force
+
+    def step(z):
+        return problem.step(0.0, z[:4], z[4:], p, 2)
+
+    derivative = jax.jit(jax.jacfwd(step))(jnp.asarray(z))
+    numeric = central_difference(jax.jit(step), z, step=1e-6)
+    np.testing.assert_allclose(derivative, numeric, rtol=1e-6,
+                               atol=1e-6 * np.max(np.abs(numeric)))
 
 
 @pytest.mark.slow  # its own program (a constrained system): 10 s of compiling

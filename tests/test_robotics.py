@@ -290,6 +290,30 @@ def test_held_points_against_pinocchio(hopper):
                          total * (data.acom[0] - model.gravity.linear), rtol=1e-10)
 
 
+def test_a_held_robots_step_differentiates_as_finite_differences(hopper):
+    """The derivative of a shooting problem's step of the hopper with its foot held
+    (`HeldPoints`, Baumgarte's terms), formed from the residuals of Lagrange's equations of
+    the first kind (the recursive Newton–Euler algorithm and the points' accelerations),
+    against central differences of the step, in the state and the inputs."""
+    tree, p = hopper.tree, hopper.p
+    held = jaxdyn.HeldPoints(tree, ["foot"], [[0.1, -0.2, -0.5]], [[0.01, 0.0, -0.03]])
+    plant = jaxdyn.Constrained(jaxdyn.Controlled(jaxdyn.ArticulatedBody(tree), input_map=[6, 7, 8]),
+                               holonomic=held, stabilisation=jaxdyn.Baumgarte(3.0, 5.0))
+    problem = jaxdyn.ShootingProblem(plant, lambda q, u, r, p: r, num_nodes=1, dt=0.01,
+                                     discretisation=jaxdyn.SemiImplicitEuler())
+    _, (q, u, _) = hopper.random_states(1, seed=4)
+    n = q.shape[1]
+    z = np.concatenate([q[0], u[0], np.random.default_rng(5).normal(size=3)])
+    size = z.shape[0] - 3
+
+    def step(z):
+        return problem.step(0.0, z[:size], z[size:], p, n)
+
+    derivative = jax.jit(jax.jacfwd(step))(jnp.asarray(z))
+    numeric = central_difference(jax.jit(step), z, step=1e-6)
+    assert_close(derivative, numeric, rtol=1e-6, atol=1e-6 * np.max(np.abs(numeric)))
+
+
 def test_held_points_name_a_tree_of_another_size(hopper):
     """HeldPoints of one tree on a system of another size, a hold of the wrong shape and
     moving holds are named at trace time."""

@@ -98,6 +98,37 @@ def _minimum_norm_solve(matrix, rhs):
     return vectors @ (inverse * (vectors.T @ rhs))
 
 
+class FirstKind:
+    r"""The linear system of Lagrange's equations of the first kind at one state, factored
+    once: M x − Cᵀ y = a, C x = b for any right-hand sides (a, b). With ρ = tr M / tr CᵀC,
+    M̃ = M + ρ CᵀC (positive definite wherever M is on the motions C allows) and the Schur
+    complement S = C M̃⁻¹ Cᵀ:
+
+        S y = b − C M̃⁻¹ (a + ρ Cᵀ b),      x = M̃⁻¹ (a + ρ Cᵀ b + Cᵀ y).
+
+    (x, y) = (u̇, λ) for (a, b) = (f, c); the same factors give their derivatives."""
+
+    def __init__(self, mass_matrix, jacobian, *, small, least_squares=False):
+        gram = jacobian.T @ jacobian
+        self.jacobian = jacobian
+        self.rho = jnp.trace(mass_matrix) / (jnp.trace(gram) + jnp.finfo(mass_matrix.dtype).tiny)
+        self.factors = factorise(mass_matrix + self.rho * gram, unrolled=small)
+        self.inverse_ct = jax.vmap(lambda b: solve(self.factors, b))(jacobian)  # M̃⁻¹ Cᵀ, rows
+        self.schur = jacobian @ self.inverse_ct.T
+        self.schur_factors = None if least_squares else factorise(self.schur, unrolled=small)
+        self.mass_singular = self.factors.singular
+        self.constraints_singular = (jnp.zeros((), bool) if self.schur_factors is None
+                                     else self.schur_factors.singular)
+
+    def solve(self, a, b):
+        """(x, y) with M x − Cᵀ y = a, C x = b (y of least norm for redundant constraints)."""
+        free = solve(self.factors, a + self.rho * self.jacobian.T @ b)
+        residual = b - self.jacobian @ free
+        y = (_minimum_norm_solve(self.schur, residual) if self.schur_factors is None
+             else solve(self.schur_factors, residual))
+        return free + self.inverse_ct.T @ y, y
+
+
 class Constrained(AbstractDynamics):
     r"""A formulation (any `jaxdyn.AbstractDynamics`) under constraints, by Lagrange's equations
     of the first kind:
@@ -231,8 +262,23 @@ class Constrained(AbstractDynamics):
             curvature = jnp.concatenate([held_curvature, curvature])
         return jacobian, g, curvature, self._phi(t, q, p)
 
-    def _right_hand_side(self, t, q, u, p):
-        """(C, c) of C u̇ = c, with the stabilisation's terms."""
+    def acceleration_residual(self, t, q, u, ud, p=None):
+        """C u̇ − c at one state (zero on the constrained motion): for `HeldPoints` alone,
+        the points' classical accelerations plus the stabilisation's terms, one JVP of the
+        tree's velocity recursion, without forming C."""
+        if not isinstance(self.holonomic, HeldPoints) or self.pfaffian is not None:
+            jacobian, rhs = self.constraint_rows(t, q, u, p)
+            return jacobian @ ud - rhs
+        velocity, acceleration = self.holonomic.velocities_and_accelerations(q, u, ud, p)
+        if isinstance(self.stabilisation, Baumgarte):
+            alpha = jnp.asarray(self.stabilisation.alpha, q.dtype)
+            beta = jnp.asarray(self.stabilisation.beta, q.dtype)
+            acceleration = (acceleration + 2 * alpha * velocity
+                            + beta**2 * self.holonomic(q, p))
+        return acceleration
+
+    def constraint_rows(self, t, q, u, p=None):
+        """(C, c) of C u̇ = c at one state, with the stabilisation's terms."""
         jacobian, g, curvature, phi = self.constraint_terms(t, q, u, p)
         rhs = -curvature
         if isinstance(self.stabilisation, Baumgarte):
@@ -242,33 +288,31 @@ class Constrained(AbstractDynamics):
             rhs = rhs - 2 * alpha * g - beta**2 * position
         return jacobian, rhs
 
+    def _first_kind(self, t, q, u, p, *, small=False):
+        """(u̇, λ, the factored system, whether it failed, whether f or c is not finite)."""
+        mass_matrix, forcing = self.dynamics.form_equations(t, q, u, p)
+        jacobian, rhs = self.constraint_rows(t, q, u, p)
+        kkt = FirstKind(mass_matrix, jacobian, small=small,
+                        least_squares=self.redundant == "least_squares")
+        accelerations, multipliers = kkt.solve(forcing, rhs)
+        nonfinite = ~jnp.all(jnp.isfinite(forcing)) | ~jnp.all(jnp.isfinite(rhs))
+        failed = kkt.mass_singular | kkt.constraints_singular | nonfinite
+        return accelerations, multipliers, kkt, failed, nonfinite
+
     def _solve(self, t, q, u, p, *, small):
         """(u̇, λ, C, mass_singular, constraints_singular, nonfinite)."""
-        mass_matrix, forcing = self.dynamics.form_equations(t, q, u, p)
-        jacobian, rhs = self._right_hand_side(t, q, u, p)
-        gram = jacobian.T @ jacobian
-        rho = jnp.trace(mass_matrix) / (jnp.trace(gram) + jnp.finfo(q.dtype).tiny)
-        augmented = mass_matrix + rho * gram
-        forcing = forcing + rho * jacobian.T @ rhs
-        factors = factorise(augmented, unrolled=small)
-        solved = jax.vmap(lambda b: solve(factors, b))(jnp.concatenate([forcing[None],
-                                                                         jacobian]))
-        free, inverse_ct = solved[0], solved[1:]  # M̃⁻¹ f̃ and rows of M̃⁻¹ Cᵀ
-        schur = jacobian @ inverse_ct.T
-        residual = rhs - jacobian @ free
-        if self.redundant == "least_squares":
-            multipliers = _minimum_norm_solve(schur, residual)
-            constraints_singular = jnp.zeros((), bool)
-        else:
-            schur_factors = factorise(schur, unrolled=small)
-            multipliers = solve(schur_factors, residual)
-            constraints_singular = schur_factors.singular
-        accelerations = free + inverse_ct.T @ multipliers
-        nonfinite = ~jnp.all(jnp.isfinite(forcing)) | ~jnp.all(jnp.isfinite(rhs))
-        failed = factors.singular | constraints_singular | nonfinite
+        accelerations, multipliers, kkt, failed, nonfinite = self._first_kind(
+            t, q, u, p, small=small)
         accelerations = jnp.where(failed, jnp.nan, accelerations)
-        return (accelerations, multipliers, jacobian, factors.singular, constraints_singular,
-                nonfinite)
+        return (accelerations, multipliers, kkt.jacobian, kkt.mass_singular,
+                kkt.constraints_singular, nonfinite)
+
+    def first_kind(self, t, q, u, p=None):
+        """(u̇, λ, the factored system `FirstKind`) at one state, for callers that solve
+        Lagrange's equations of the first kind again with other right-hand sides (their
+        derivatives); u̇ is NaN where the equations fail."""
+        accelerations, multipliers, kkt, failed, _ = self._first_kind(t, q, u, p)
+        return jnp.where(failed, jnp.nan, accelerations), multipliers, kkt
 
     # -- AbstractDynamics ---------------------------------------------------------------------
 

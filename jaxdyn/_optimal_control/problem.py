@@ -21,6 +21,7 @@ import optimistix as optx
 from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._form.articulated import ArticulatedBody
+from .._form.constraints import Constrained
 from .._form.controlled import Controlled, find_controlled
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
@@ -284,12 +285,13 @@ class ShootingProblem(eqx.Module):
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
         driven = self.dynamics.with_inputs(r)
-        implicit = _residual_is_equations(self.dynamics)
+        implicit = (accelerations if _residual_is_equations(self.dynamics) else
+                    first_kind_accelerations if _first_kind_residuals(self.dynamics) else None)
 
         def field(t, q, u):
-            if implicit:
+            if implicit is not None:
                 return (driven.coordinate_rates(t, q, u, p),
-                        accelerations(self.dynamics, t, q, u, r, p))
+                        implicit(self.dynamics, t, q, u, r, p))
             rates, accelerations_, _, _ = equations_of_motion(driven, t, q, u, p)
             return rates, accelerations_
 
@@ -409,6 +411,45 @@ def _accelerations_jvp(dynamics, primals, tangents):
 
     _, d_residual = jax.jvp(residual, (q, u, r, p), (dq, du, dr, dp))
     return ud, -spd_solve(mass_matrix, d_residual)[0]
+
+
+def _first_kind_residuals(dynamics) -> bool:
+    """Whether the system is Lagrange's equations of the first kind on a formulation driven
+    directly (`Constrained` about one that `_residual_is_equations` accepts)."""
+    return isinstance(dynamics, Constrained) and _residual_is_equations(dynamics.dynamics)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def first_kind_accelerations(dynamics, t, q, u, r, p):
+    """u̇(q, u, r) of Lagrange's equations of the first kind, M u̇ = f + B r + Cᵀλ,
+    C u̇ = c, differentiated through their residuals R₁ = M u̇ − f − B r − Cᵀλ and
+    R₂ = C u̇ − c at the solution: with ∂R the derivatives at fixed (u̇, λ),
+
+        M δu̇ − Cᵀ δλ = −∂R₁ · δx,      C δu̇ = −∂R₂ · δx,
+
+    one forward-mode pass of the residuals (for a tree, the recursive Newton–Euler algorithm
+    and the constraints' kinematics) per direction, solved with the factors of the
+    accelerations' own system (`FirstKind`), instead of the derivative of the solve itself:
+    the route of Carpentier and Mansard's analytical derivatives, here by autodiff."""
+    return equations_of_motion(dynamics.with_inputs(r), t, q, u, p)[1]
+
+
+@first_kind_accelerations.defjvp
+def _first_kind_accelerations_jvp(dynamics, primals, tangents):
+    t, q, u, r, p = primals
+    _, dq, du, dr, dp = tangents
+    ud, multipliers, kkt = dynamics.with_inputs(r).first_kind(t, q, u, p)
+
+    def residuals(q, u, r, p):
+        driven = dynamics.with_inputs(r)
+        # R₂ is affine in u̇ with the coefficient C: Cᵀλ is its VJP in u̇.
+        second, transpose = jax.vjp(lambda ud: driven.acceleration_residual(t, q, u, ud, p),
+                                    ud)
+        return (driven.dynamics.form_residual(t, q, u, ud, p) - transpose(multipliers)[0],
+                second)
+
+    _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
+    return ud, kkt.solve(-d_first, -d_second)[0]
 
 
 def _cost_value(value, name):

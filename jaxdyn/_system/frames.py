@@ -312,22 +312,35 @@ class HeldPoints(eqx.Module):
             rows.append(origins[-1] + rotations[-1] @ point.astype(q.dtype) - position)
         return jnp.concatenate(rows)
 
-    def velocity_terms(self, q, u, p=None):
-        """(C (3k, m), γ (3k,)): the rows of φ̇ = C u and the curvature γ = J̇ u, so that
-        φ̈ = C u̇ + γ."""
+    def velocities_and_accelerations(self, q, u, ud, p=None):
+        """(φ̇ = C u, φ̈ = C u̇ + γ) (3k,): each point's velocity and classical acceleration,
+        one JVP of the velocity recursion along (q̇, u̇)."""
         self._checked(q, u)
         t = jnp.zeros((), q.dtype)
-        jacobians, curvatures = [], []
+        velocities, accelerations = [], []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
             point, q_chain, u_chain = point.astype(q.dtype), q[q_index], u[u_index]
-            rotations, origins = chain.link_poses(t, q_chain, p)
-            where = origins[-1] + rotations[-1] @ point
+            qd = chain.coordinate_rates(t, q_chain, u_chain, p)
+            velocity, rates = jax.jvp(
+                lambda q, u: _velocity(chain, point, "world", q, u, p), (q_chain, u_chain),
+                (qd, ud[u_index]))
+            velocities.append(velocity[3:])
+            accelerations.append(rates[3:])
+        return jnp.concatenate(velocities), jnp.concatenate(accelerations)
+
+    def velocity_terms(self, q, u, p=None):
+        """(C (3k, m), γ (3k,)): the rows of φ̇ = C u and the curvature γ = J̇ u (the points'
+        classical accelerations at u̇ = 0), so that φ̈ = C u̇ + γ."""
+        self._checked(q, u)
+        t = jnp.zeros((), q.dtype)
+        jacobians = []
+        for frame, point in zip(self.frames, self.points):
+            chain, q_index, u_index = _ancestors(self.tree, frame)
+            rotations, origins = chain.link_poses(t, q[q_index], p)
+            where = origins[-1] + rotations[-1] @ point.astype(q.dtype)
             _, velocity = world_subspaces(chain, rotations, origins, where)
             jacobians.append(jnp.zeros((3, self.tree.num_speeds), q.dtype)
                              .at[:, u_index].set(velocity.T))
-            qd = chain.coordinate_rates(t, q_chain, u_chain, p)
-            _, rates = jax.jvp(lambda q: _velocity(chain, point, "world", q, u_chain, p),
-                               (q_chain,), (qd,))
-            curvatures.append(rates[3:])
-        return jnp.concatenate(jacobians), jnp.concatenate(curvatures)
+        curvature = self.velocities_and_accelerations(q, u, jnp.zeros_like(u), p)[1]
+        return jnp.concatenate(jacobians), curvature
