@@ -232,8 +232,9 @@ class Constrained(AbstractDynamics):
         qd = self.dynamics.coordinate_rates(t, q, u, p)
         rows = []
         if isinstance(self.holonomic, HeldPoints):
-            if held:
-                rows.append(self.holonomic.velocity_terms(q, u, p)[0] @ u)
+            if held:  # φ̇: the points' velocities, without forming C
+                rows.append(self.holonomic.velocities_and_accelerations(
+                    q, u, jnp.zeros_like(u), p)[0])
         elif self.holonomic is not None:
             rows.append(jax.jvp(lambda t, q: self._phi(t, q, p), (t, q),
                                 (jnp.ones_like(t), qd))[1])
