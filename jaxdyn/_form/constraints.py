@@ -6,13 +6,12 @@ from typing import Callable, cast
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 
 from .._convention import CONFIGURATION_ARGS, call, vector
 from .._dynamics import AbstractDynamics, accelerations_from_equations
 from .._errors import error_if
-from .._linalg import factorise, solve
+from .._linalg import factorise, solve, spd_solve
 from .._solution import ConstraintRecord
 from .._state import check_vector, public_method
 from .._system.frames import HeldPoints
@@ -65,13 +64,17 @@ class Projection(eqx.Module):
 
 
 def _gauss_newton_step(residual, x):
-    """x − J⁺ r(x), J = ∂r/∂x: the minimum-norm correction (lineax QR of the wide J)."""
+    """x − J⁺ r(x), J = ∂r/∂x: the minimum-norm correction Jᵀ (J Jᵀ + δ I)⁻¹ r, δ = m ε
+    tr J Jᵀ (redundant rows, where J Jᵀ is singular, add nothing to the step: Jᵀ annihilates
+    what δ lets through). An LDLᵀ of the small m × m matrix, not a library's QR: a call to
+    LAPACK inside `simulate`'s loop keeps XLA from compiling the loop as one function."""
     value, jacobian = residual(x), jax.jacfwd(residual)(x)
     if value.shape[0] == 0:
         return x, value
-    step = lx.linear_solve(lx.MatrixLinearOperator(jacobian), value, lx.QR(),
-                           throw=False).value
-    return x - step, value
+    gram = jacobian @ jacobian.T
+    regularised = gram + (value.shape[0] * jnp.finfo(x.dtype).eps * jnp.trace(gram)
+                          + jnp.finfo(x.dtype).tiny) * jnp.eye(value.shape[0], dtype=x.dtype)
+    return x - jacobian.T @ spd_solve(regularised, value)[0], value
 
 
 def _free(kept, size, name) -> np.ndarray:
