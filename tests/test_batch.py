@@ -248,6 +248,9 @@ def _result(process, timeout=300):
     return json.loads(out.strip().splitlines()[-1])
 
 
+# Slow (31 s at XLA's defaults): the default run shards over two processes
+# (test_two_processes_with_jax_distributed_equal_one).
+@pytest.mark.slow
 def test_sharded_over_four_cpu_devices_equals_unsharded():
     """On 4 simulated CPU devices (in a subprocess, so the rest of the suite keeps one): 37
     members padded to 64 (16 per device), ordered by cost, and on two of the four devices in

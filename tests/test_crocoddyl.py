@@ -343,6 +343,9 @@ def anymal_problem():
                 contact_dynamics=contact_dynamics, plant=plant)
 
 
+# Slow (18 s): the held points' dynamics are checked against Pinocchio in the default run
+# (tests/test_robotics.py::test_held_points_against_pinocchio).
+@pytest.mark.slow
 def test_held_feet_are_crocoddyls_contact_dynamics():
     """Lagrange's equations of the first kind with ANYmal-C's feet held (`HeldPoints`,
     Baumgarte's terms) are Crocoddyl's contact dynamics (`ContactModel3D` with gains (β², 2α),
