@@ -390,8 +390,9 @@ def test_a_variational_discretisation_swings_the_cart_pole_up():
 TO_ROUND_OFF = jaxdyn.DDP(tol=1e-15)
 
 
-# Slow (30 s): the default run differentiates a constrained optimum against central
-# differences (below) and the notebook d J*/d m; this one, with the bound active, runs with -m slow.
+# Slow (30 s): the default run checks the implicit-function-theorem derivatives of a
+# constrained optimum against central differences (above); this one, the input bound active
+# and the inputs' derivatives in the start included, runs with -m slow.
 @pytest.mark.slow
 def test_gradients_of_the_optimum_against_finite_differences(swing_up):
     """d J*/d p and d r*/d x₀ by the implicit function theorem (the bound active on 18
