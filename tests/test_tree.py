@@ -387,18 +387,22 @@ def test_fixed_joints_are_welded_into_their_parents():
                                              {"m_t": m_t}), [expected], rtol=1e-12)
 
 
-@pytest.mark.parametrize("loop_max", [0, pytest.param(24, marks=pytest.mark.slow)])
-def test_a_robot_with_many_fixed_joints_against_pinocchio(loop_max, monkeypatch):
+@pytest.mark.parametrize("form", ["levels", pytest.param("scan", marks=pytest.mark.slow),
+                                  pytest.param("straight", marks=pytest.mark.slow)])
+def test_a_robot_with_many_fixed_joints_against_pinocchio(form, monkeypatch):
     """ANYmal-C hangs 65 of its 78 links (feet, sensors, covers) on fixed joints: the
     articulated-body algorithm welds them into 13 moving links, as Pinocchio does. Forward
-    dynamics and M against Pinocchio, in a scan whose floating base is taken before it
-    (`scan_head`) and (slow set) as straight-line code, the default for 13 links, which the
-    Panda checks by default."""
-    monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", loop_max)
+    dynamics and M against Pinocchio, with the floating base taken before the other links
+    (`scan_head`) and the legs level by level in straight-line code (the default for 13
+    branched links), and (slow set) in a scan over the levels and link by link."""
+    if form == "scan":
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 0)
+    if form == "straight":
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LEVELS_MIN", 14)
     case = _pinocchio_case("anymal_c_simple_description/urdf/anymal.urdf", True, num_states=2)
     perm, p = case["permutation"], case["p"]
     assert len(case["tree"].links) == 78 and len(case["tree"].merge_fixed().links) == 13
-    assert case["tree"].merge_fixed().scan_head() == (13 if loop_max else 1)
+    assert case["tree"].merge_fixed().scan_head() == (13 if form == "straight" else 1)
     dynamics = jaxdyn.ArticulatedBody(case["driven"])
     p_tau = jax.vmap(lambda tau: {**p, "tau": tau})(jnp.asarray(case["tau"]))
     accelerations = jax.vmap(dynamics.accelerations)(jnp.zeros(2), case["q"], case["u"], p_tau)
@@ -426,16 +430,21 @@ def _floating_arm():
     ])
 
 
-def test_levels_in_ground_axes_against_kane_and_finite_differences(monkeypatch):
-    """Trees too large for straight-line code run their recursions level by level (links of
-    one depth together) and the articulated-body algorithm in ground axes: a floating base
-    taken before the scan, two branches of different depths, a ball joint widening the
-    scanned links to three columns (revolute links padded), and a force on a link. Forward
-    dynamics and the mass matrix against Kane's equations of the same tree (`LOOP_MAX`
-    lowered so that the tree is scanned), and the derivatives in q, u against central
+@pytest.mark.parametrize("form", ["scan", "levels"])
+def test_levels_in_ground_axes_against_kane_and_finite_differences(form, monkeypatch):
+    """Branched trees beyond straight-line code run their recursions level by level (links of
+    one depth together: in a scan, or in straight-line code up to `LOOP_MAX` links) and the
+    articulated-body algorithm in ground axes: a floating base taken before the levels, two
+    branches of different depths, a ball joint widening the other links to three columns
+    (revolute links padded), and a force on a link. Forward dynamics and the mass matrix
+    against Kane's equations of the same tree (`LOOP_MAX` or `LEVELS_MIN` lowered so that
+    this tree of 7 links takes that form), and the derivatives in q, u against central
     differences."""
-    monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 1)
-    monkeypatch.setattr(jaxdyn._system.tree_levels, "POSES_LOOP_MAX", 1)  # the poses scanned too
+    if form == "scan":
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 1)
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "POSES_LOOP_MAX", 1)  # poses too
+    else:
+        monkeypatch.setattr(jaxdyn._system.tree_levels, "LEVELS_MIN", 1)
     inertia = jnp.asarray(INERTIA)
     arm = _floating_arm()
     tree = jaxdyn.RigidBodyTree(list(arm.links) + [

@@ -12,11 +12,13 @@ in the world at R_WC = R_WP R_PC, r_WC = r_WP + R_WP r_PC, and moves with the sp
 
 where (ω_J, v_J) = S u is the joint's own motion. The joints of one type are evaluated
 together; the recursion itself runs as a Python loop for small trees (straight-line code, which
-`jaxdyn._unroll` turns into a few kernels) and as a `lax.scan` for large ones, so that compile
-time does not grow with the number of links: over the links of a chain (the carry is the
-parent's state), and over the levels of a branched tree (the links of one depth together,
-each gathering its parent's state from the level above, or summing what its children pass up
-from the level below; consecutive levels of similar width in one scan: `tree_levels`). A
+`jaxdyn._unroll` turns into a few kernels), as a Python loop over the levels of a branched tree
+of a dozen links or more (a quadruped's legs: three levels of four links), and as a `lax.scan`
+for large ones, so that compile time does not grow with the number of links: over the links
+of a chain (the carry is the parent's state), and over the levels of a branched tree (the
+links of one depth together, each gathering its parent's state from the level above, or
+summing what its children pass up from the level below; consecutive levels of similar width
+in one scan: `tree_levels`). A
 humanoid of 30 bodies is ten levels of at most four links: ten steps of four links' arithmetic
 at once rather than thirty steps of one, each of which would also read and write a buffer of
 every link's state (per state in a batch, G1's forward dynamics 30.6 → 12.4 µs). The links
@@ -295,13 +297,15 @@ class RigidBodyTree(AbstractMultibody):
         return tree_levels._is_chain(self.parents)
 
     def scan_head(self, loop_max: int | None = None) -> int:
-        """How many leading links a recursion takes one by one before its `lax.scan` (trees of
-        more than `loop_max` links, default `LOOP_MAX`; all of them below): the roots on
-        joints of more than one speed, such as a floating base, so that the links in the scan
-        carry the width of their own joints (one speed each in most robots), not the base's
-        six."""
+        """How many leading links a recursion takes one by one before the rest, which it
+        takes level by level (branched trees of `LEVELS_MIN` links or more) or in a
+        `lax.scan` (trees of more than `loop_max` links, default `LOOP_MAX`); all of them in
+        smaller trees and chains: the roots on joints of more than one speed, such as a
+        floating base, so that the other links carry the width of their own joints (one speed
+        each in most robots), not the base's six."""
         n = len(self.links)
-        if n <= (tree_levels.LOOP_MAX if loop_max is None else loop_max):
+        if n <= (tree_levels.LOOP_MAX if loop_max is None else loop_max) and (
+                loop_max is not None or n < tree_levels.LEVELS_MIN or self._is_chain()):
             return n
         head = 0
         while head < n and self.parents[head] < 0 and self.links[head].joint.nv > 1:
