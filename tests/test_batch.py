@@ -79,6 +79,25 @@ def test_vmapped_simulate_with_a_nan_member_and_throw_false(members):
                                atol=CLOSED_FORM_ATOL)
 
 
+def test_a_nonfinite_array_deep_in_the_parameters_gets_its_own_code():
+    """The finite stand-in of simulate(throw=False) checks the parameters an entry of the
+    dict at a time, the entry's arrays flattened into one vector: each array is put back in
+    its shape and place (the oscillator reads a nested element), and an inf in any of them,
+    used or not, gives its own code and NaN states."""
+    nested = jaxdyn.Lagrangian(kinetic=lambda q, qd, p: 0.5 * p["body"]["m"] * qd @ qd,
+                               potential=lambda q, p: 0.5 * p["spring"]["k"][1, 0] * q @ q)
+    p = {"body": {"m": 1.0, "com": np.array([0.0, 0.1, 0.2])},
+         "spring": {"k": np.array([[9.0], [4.0]]), "rest": 0.3}}
+    solution = jaxdyn.simulate(nested, [0.5], [-0.2], p, throw=False, **OPTIONS)
+    assert solution.result == jaxdyn.RESULTS.successful
+    np.testing.assert_allclose(solution.q[:, 0], closed_form(0.5, -0.2, 4.0)[0],
+                               atol=CLOSED_FORM_ATOL)
+    p["body"]["com"] = np.array([0.0, np.inf, 0.2])
+    solution = jaxdyn.simulate(nested, [0.5], [-0.2], p, throw=False, **OPTIONS)
+    assert solution.result == jaxdyn.RESULTS.nonfinite_state_or_parameters
+    assert bool(np.all(np.isnan(solution.q)))
+
+
 @pytest.mark.usefixtures("xla_defaults")  # bit for bit in the programs users run
 def test_simulate_batch_matches_the_closed_form_and_single_simulations(members):
     x0, v0, k = members["x0"][:, None], members["v0"][:, None], members["k"]

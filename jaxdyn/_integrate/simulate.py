@@ -459,13 +459,44 @@ WRITTEN_OUT_STAGES_MAX = 1500
 def _finite_stand_in(q0, u0, p):
     """(q0, u0, p) with NaN and inf replaced by zeros, and whether there were any: the solve
     then runs on finite numbers (and stops soon if they make no sense, e.g. a zero mass) and
-    its result is discarded."""
-    leaves = [x for x in jax.tree_util.tree_leaves((q0, u0, p)) if eqx.is_inexact_array(x)]
-    nonfinite = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
-    q0, u0, p = jax.tree_util.tree_map(
-        lambda x: jnp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-        if eqx.is_inexact_array(x) else x, (q0, u0, p))
-    return q0, u0, p, nonfinite
+    its result is discarded.
+
+    The arrays are checked and replaced a group at a time, q0, u0 and each entry of a dict
+    `p` (a robot's link: its mass, centre of mass and inertia), flattened into one vector: a
+    few operations per group rather than per array (ANYmal-C's 78 links, 234 arrays, in
+    contact: the solve's optimised HLO 38 540 → 29 725 lines, XLA's passes over it 2.2–2.5 →
+    1.7–2.2 s).
+    Not all of `p` in one vector: a `jax.vmap` over one parameter would then batch them all."""
+    groups = [q0, u0, *(p.values() if isinstance(p, dict) else [p])]
+    replaced, flags = zip(*map(_finite_group, groups))
+    q0, u0, *rest = replaced
+    if isinstance(p, dict):
+        p = dict(zip(p.keys(), rest))
+    else:
+        (p,) = rest
+    return q0, u0, p, jnp.any(jnp.stack(flags))
+
+
+def _finite_group(tree):
+    """(`tree` with its non-finite floating-point entries zeroed, whether it had any), its
+    arrays of one dtype checked as one flattened vector."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    nonfinite = [jnp.zeros((), bool)]
+    by_dtype: dict = {}
+    for i, x in enumerate(leaves):
+        if eqx.is_inexact_array(x):
+            by_dtype.setdefault(x.dtype, []).append(i)
+    for members in by_dtype.values():
+        flat = jnp.concatenate([jnp.ravel(leaves[i]) for i in members])
+        finite = jnp.isfinite(flat)
+        nonfinite.append(~jnp.all(finite))
+        flat = jnp.where(finite, flat, 0)
+        offset = 0
+        for i in members:
+            size = leaves[i].size
+            leaves[i] = flat[offset:offset + size].reshape(leaves[i].shape)
+            offset += size
+    return jax.tree_util.tree_unflatten(treedef, leaves), jnp.any(jnp.stack(nonfinite))
 
 
 def _check_shapes(dynamics, t0, q0, u0, p):
