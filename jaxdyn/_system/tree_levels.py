@@ -30,13 +30,16 @@ LOOP_MAX = 24
 # of four links each, one vectorised step a level instead of twelve one-link steps, which
 # makes the program that XLA compiles smaller. ANYmal-C in contact (Tsit5 at 1e-6, 1 s, its
 # first `simulate`): the solve's loop 55 724 → 47 234 lines of LLVM IR, the first call about
-# 2.5 s shorter, the run unchanged (benchmarks/LOG.md, "ANYmal's first call, level by level").
+# 2 s shorter, and about 0.7 s more with its contacts' poses level by level too, the warm run
+# unchanged, 1.5–4 % slower in a batch (benchmarks/LOG.md, "ANYmal's first call, level by
+# level").
 LEVELS_MIN = 12
 
 # The links' poses alone, a rotation and an offset composed per link, are straight-line code up
-# to this many links: Talos's 45 cost 1.6 µs per state against 2.1 level by level, its mass
-# matrix 6.2–6.9 against 7.3–7.8 µs, for 0.7 s more compile (which the articulated-body
-# algorithm, compiling in 4.2 s on Talos, does not take: 5.0 s with them).
+# to this many links (level by level in branched trees of `LEVELS_MIN` to `LOOP_MAX` links):
+# Talos's 45 cost 1.6 µs per state against 2.1 level by level, its mass matrix 6.2–6.9
+# against 7.3–7.8 µs, for 0.7 s more compile (which the articulated-body algorithm,
+# compiling in 4.2 s on Talos, does not take: 5.0 s with them).
 POSES_LOOP_MAX = 64
 
 # A band of levels costs its levels × its width in link-steps; a further band, about this many
