@@ -461,20 +461,16 @@ def _finite_stand_in(q0, u0, p):
     then runs on finite numbers (and stops soon if they make no sense, e.g. a zero mass) and
     its result is discarded.
 
-    The arrays are checked and replaced a group at a time, q0, u0 and each entry of a dict
-    `p` (a robot's link: its mass, centre of mass and inertia), flattened into one vector: a
+    The arrays are checked and replaced a group at a time, q0, u0 and each entry of `p` (of a
+    dict: a robot's link, its mass, centre of mass and inertia), flattened into one vector: a
     few operations per group rather than per array (ANYmal-C's 78 links, 234 arrays, in
     contact: the solve's optimised HLO 38 540 → 29 725 lines, XLA's passes over it 2.2–2.5 →
     1.7–2.2 s).
     Not all of `p` in one vector: a `jax.vmap` over one parameter would then batch them all."""
-    groups = [q0, u0, *(p.values() if isinstance(p, dict) else [p])]
-    replaced, flags = zip(*map(_finite_group, groups))
-    q0, u0, *rest = replaced
-    if isinstance(p, dict):
-        p = dict(zip(p.keys(), rest))
-    else:
-        (p,) = rest
-    return q0, u0, p, jnp.any(jnp.stack(flags))
+    entries, structure = jax.tree_util.tree_flatten(p, is_leaf=lambda x: x is not p)
+    replaced, flags = zip(*map(_finite_group, [q0, u0, *entries]))
+    q0, u0, *entries = replaced
+    return q0, u0, jax.tree_util.tree_unflatten(structure, entries), jnp.any(jnp.stack(flags))
 
 
 def _finite_group(tree):
