@@ -230,13 +230,9 @@ def backward_split(parents, step, zero, head_links, rest):
         else:  # level by level, leaves first: the carry is what the level below passes up
             levels = _levels(parents, head)
 
-            def summed(below, children):  # each slot's children's (W: a row of zeros)
-                return tree_map(lambda b: jnp.sum(jnp.concatenate(
-                    [b, jnp.zeros_like(b[:1])])[children], axis=1), below)
-
             def body(below, xs):
                 children, data = xs
-                total = tree_map(lambda z, s: z[None] + s, zero, summed(below, children))
+                total = tree_map(lambda z, s: z[None] + s, zero, _children_sum(below, children))
                 out, up = jax.vmap(step)(total, data)
                 return up, out
 
@@ -248,8 +244,8 @@ def backward_split(parents, step, zero, head_links, rest):
                                                          jnp.result_type(z)), zero)
                 else:  # what the next band's first level passed up, summed per parent
                     width_below = jax.tree_util.tree_leaves(up)[0].shape[0]
-                    start = summed(up, np.where(band.handoff < 0, width_below,
-                                                band.handoff))
+                    start = _children_sum(up, np.where(band.handoff < 0, width_below,
+                                                       band.handoff))
                 up, per_band[b] = jax.lax.scan(body, start, (band.children,
                                                              tree_map(band.by_slot, rest)),
                                                reverse=True)
@@ -264,6 +260,13 @@ def backward_split(parents, step, zero, head_links, rest):
         target = n if parents[i] < 0 else parents[i]
         accumulated[target] = tree_map(jnp.add, accumulated[target], up)
     return outputs, scanned, accumulated[n]
+
+
+def _children_sum(below, children):
+    """Each slot's children's values summed: `children` (W, K) indexes `below` (W', …), with
+    W' for no child (a row of zeros)."""
+    return jax.tree_util.tree_map(lambda b: jnp.sum(jnp.concatenate(
+        [b, jnp.zeros_like(b[:1])])[children], axis=1), below)
 
 
 def _take(x, index):
@@ -326,8 +329,7 @@ def _backward_by_level(levels, parents, head, step, zero, rest):
                             for slot in range(len(level))]
                 most = max(len(c) for c in children)
                 index = np.array([c + [len(below)] * (most - len(c)) for c in children])
-                received = tree_map(lambda b: jnp.sum(jnp.concatenate(
-                    [b, jnp.zeros_like(b[:1])])[index], axis=1), up)
+                received = _children_sum(up, index)
             total = tree_map(lambda z, r: z[None] + r, zero, received)
             outputs[d], up_here = jax.vmap(step)(total, data)
         up, below = up_here, level
