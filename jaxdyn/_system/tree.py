@@ -18,11 +18,10 @@ for large ones, so that compile time does not grow with the number of links: ove
 of a chain (the carry is the parent's state), and over the levels of a branched tree (the
 links of one depth together, each gathering its parent's state from the level above, or
 summing what its children pass up from the level below; consecutive levels of similar width
-in one scan: `tree_levels`). A
-humanoid of 30 bodies is ten levels of at most four links: ten steps of four links' arithmetic
-at once rather than thirty steps of one, each of which would also read and write a buffer of
-every link's state (per state in a batch, G1's forward dynamics 30.6 → 12.4 µs). The links
-themselves (`Link`, `LinkLoad`) are in `links`.
+in one scan: `tree_levels`). A humanoid of 30 bodies is ten levels of at most four links: ten
+steps of four links' arithmetic at once rather than thirty steps of one, each of which would
+also read and write a buffer of every link's state (per state in a batch, G1's forward
+dynamics 30.6 → 12.4 µs). The links themselves (`Link`, `LinkLoad`) are in `links`.
 """
 
 import dataclasses
