@@ -195,8 +195,10 @@ def simulate(
                 dense, save, solver, stepsize_controller, budget, adjoint, throw, reachable,
                 lean, events, max_events))
 
-    if not all(_concrete_value(x) is not None
-               for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
+    # (Outside any trace every value is known: the walk over the leaves is skipped.)
+    if not jax_core.trace_state_clean() and not all(
+            _concrete_value(x) is not None
+            for x in jax.tree_util.tree_leaves((dynamics, q0, u0, numbers))):
         return run(max_steps, lean=False)  # staged into a caller's program: diagnoses itself
     # Called eagerly (values known, also under an un-jitted jax.grad or jax.jvp, whose
     # tracers carry them): first a lean program, without the diagnosis of failures (which locates
