@@ -487,6 +487,64 @@ def test_an_infeasible_start_closes_its_gaps():
     assert np.all(np.abs(solution.inputs) <= FORCE)
 
 
+# -- a block pushed against Coulomb friction, in compliant contact with the ground -----------
+
+BLOCK = dict(m=2.0, g=9.81, mu=0.5, k=1e6)
+
+
+def block_scene(relaxation):
+    """A block (a point mass) on compliant ground (Hunt–Crossley, Coulomb friction μ), pushed
+    along x by a force r; the ground's tangential deformation relaxes in `relaxation` s."""
+    m, g, mu, k = (BLOCK[name] for name in ("m", "g", "mu", "k"))
+    plant = jaxdyn.Controlled(jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd,
+                                                lambda q, p: m * g * q[2]), input_map=[0])
+    return jaxdyn.Contact(plant, [jaxdyn.ContactPoint(lambda q, p: q)],
+                          model=jaxdyn.HuntCrossley(k, 1.0, friction=mu,
+                                                    tangential_damping=relaxation * k,
+                                                    smoothing=1e-5))
+
+
+def test_a_block_pushed_against_coulomb_friction_in_compliant_contact():
+    """Contact in a shooting problem: the block moved from rest to rest 1 m away in 1 s with
+    the least Σ Δt r² (semi-implicit Euler, Δt = 2.5 ms, the final state a constraint). While
+    it slides forward, friction is μ m g against the motion, so the optimal force is the rigid
+    Coulomb block's: m a_k + μ m g, with a_k the discrete double integrator's least-norm
+    accelerations (NumPy). The compliant model departs from it where the block sticks: at the
+    start, while the ground's deformation loads (τ = 20 ms), and as it comes to rest."""
+    m, g, mu, k = (BLOCK[name] for name in ("m", "g", "mu", "k"))
+    num_nodes, dt = 400, 0.0025
+    problem = jaxdyn.ShootingProblem(
+        block_scene(0.02), lambda q, u, r, p: r, num_nodes=num_nodes, dt=dt,
+        discretisation=jaxdyn.SemiImplicitEuler(),
+        terminal_constraints=lambda q, u, p: jnp.array([q[0] - 1.0, u[0]]))
+    resting = (m * g / k) ** (2 / 3)  # the block's sinking under its weight
+    plan = jaxdyn.solve_optimal_control(
+        problem, jnp.array([0.0, 0.0, -resting]), jnp.zeros(3), {},
+        inputs=jnp.full((num_nodes, 1), 1.2 * mu * m * g))  # (a guess that slides it)
+    assert bool(plan.converged)
+    assert plan.q.shape == (num_nodes + 1, 6)  # (q, ξ): the ground's deformation appended
+    np.testing.assert_allclose([plan.q[-1, 0], plan.u[-1, 0]], [1.0, 0.0], atol=1e-6)
+    # x_N = Δt² Σ (N − k) a_k, v_N = Δt Σ a_k (semi-implicit Euler from rest)
+    steps = np.arange(num_nodes)
+    a = np.stack([dt**2 * (num_nodes - steps), dt * np.ones(num_nodes)])
+    least_norm = a.T @ np.linalg.solve(a @ a.T, np.array([1.0, 0.0]))
+    sliding = slice(num_nodes // 10, num_nodes - num_nodes // 50)
+    np.testing.assert_allclose(plan.inputs[sliding, 0],
+                               m * least_norm[sliding] + mu * m * g, atol=0.05)
+
+
+def test_a_contact_step_too_long_for_the_ground_is_named():
+    """The ground's deformation relaxes in τ = 2 ms by default: an explicit step of 5 ms would
+    let it grow without bound (and lose friction)."""
+    running = lambda q, u, r, p: r  # noqa: E731
+    with pytest.raises(ValueError, match=r"relaxes in τ = c_t/k_t = 2 ms.*below 2τ = 4 ms"):
+        jaxdyn.ShootingProblem(block_scene(2e-3), running, num_nodes=10, dt=0.005,
+                               discretisation=jaxdyn.SemiImplicitEuler())
+    with pytest.raises(ValueError, match=r"below 2.785τ"):
+        jaxdyn.ShootingProblem(block_scene(2e-3), running, num_nodes=10, dt=0.006)
+    jaxdyn.ShootingProblem(block_scene(2e-3), running, num_nodes=10, dt=0.005)  # RK4: stable
+
+
 def test_mpc_swings_up_and_holds_the_pole_of_a_heavier_plant():
     """Receding-horizon control (a 1.5 s horizon, at most 10 iterations a step, warm-started)
     from hanging, of a plant whose pole is 20 % heavier than the model's: the pole comes up

@@ -38,7 +38,9 @@ from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._dynamics import AbstractDynamics, accelerations_from_equations
@@ -110,6 +112,18 @@ class HuntCrossley(eqx.Module):
                                      f"{value}.")
         if self.smoothing < 0:
             raise ValueError(f"smoothing must be ≥ 0, got {self.smoothing}.")
+
+    def relaxation_time(self) -> float | None:
+        """τ = c_t / k_t (s): off contact the ground's deformation relaxes as ξ̇ = −ξ / τ, the
+        fastest rate of the tangential model, which a fixed explicit step must resolve. None
+        where c_t or k_t is a function of the parameters (or traced)."""
+        if self.tangential_damping is None:
+            return 2e-3
+        k_t = self.stiffness if self.tangential_stiffness is None else self.tangential_stiffness
+        if any(callable(x) or isinstance(x, jax.core.Tracer)
+               for x in (self.tangential_damping, k_t)):
+            return None
+        return float(np.asarray(self.tangential_damping) / np.asarray(k_t))
 
     @staticmethod
     def restitution_dissipation(restitution, speed):

@@ -81,6 +81,8 @@ def model_predictive_control(problem: ShootingProblem, q0, u0, p=None, *, num_st
     dtype = jnp.result_type(q0, u0)
     q0, u0 = q0.astype(dtype), u0.astype(dtype)
     p = numbers_as_arrays(p, dtype)
+    # A contact scene's coordinates carry the ground's deformations (zero at the start).
+    q0 = check_vector(problem.dynamics.initial_coordinates(q0, u0, p), "q0")
     plant = problem.dynamics if plant is None else plant
     plant_parameters = p if plant_parameters is None else numbers_as_arrays(plant_parameters,
                                                                             dtype)

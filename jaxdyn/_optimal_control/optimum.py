@@ -128,7 +128,8 @@ def solve_optimal_control(problem: ShootingProblem, q0, u0, p=None, *, inputs=No
     **Arguments:**
 
     - `problem`: the `jaxdyn.ShootingProblem`.
-    - `q0`, `u0`: the initial state.
+    - `q0`, `u0`: the initial state (for a `jaxdyn.Contact` scene, the system's q0: the
+      ground's deformations start at zero, and the plan's q holds them appended).
     - `p`: the parameters, passed to the dynamics and the costs.
     - `inputs`: the initial guess of the inputs (N, k); None: zero (clipped to the bounds).
     - `states`: a guess of the states, a pair (q (N+1, n), u (N+1, m)): the solve starts
@@ -167,6 +168,8 @@ def solve_optimal_control(problem: ShootingProblem, q0, u0, p=None, *, inputs=No
     dtype = jnp.result_type(q0, u0)
     q0, u0 = q0.astype(dtype), u0.astype(dtype)
     p = numbers_as_arrays(p, dtype)
+    # A contact scene's coordinates carry the ground's deformations (zero at the start).
+    q0 = check_vector(problem.dynamics.initial_coordinates(q0, u0, p), "q0")
     num_inputs = problem.num_inputs(q0, u0, p)
     shape = (problem.num_nodes, num_inputs)
     inputs = jnp.zeros(shape, dtype) if inputs is None else jnp.asarray(inputs, dtype)

@@ -10,7 +10,7 @@ r held constant over each interval (a zero-order hold), t_k = t0 + k Δt.
 
 import abc
 import functools
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -22,6 +22,7 @@ from .._convention import call
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._form.articulated import ArticulatedBody
 from .._form.constraints import Constrained
+from .._form.contact import Contact
 from .._form.controlled import Controlled, find_controlled
 from .._form.euler_lagrange import Lagrangian
 from .._form.gibbs_appell import GibbsAppell
@@ -38,6 +39,11 @@ class AbstractDiscretisation(eqx.Module):
     """A fixed-step one-step method x_{k+1} = F_Δt(t_k, x_k, r_k) for q̇ = K u, u̇ = a(q, u, r)
     with the inputs held over the step."""
 
+    # The largest Δt |λ| for which the method damps ẋ = λx with λ < 0 (its stability interval
+    # on the negative real axis), or None for a method that is not explicit: a relaxation of
+    # time constant τ needs Δt < limit · τ.
+    stability_limit: ClassVar[float | None] = None
+
     @abc.abstractmethod
     def step(self, field, rates, t, q, u, dt, system=None) -> tuple[jax.Array, jax.Array]:
         """(q_{k+1}, u_{k+1}) from (q_k, u_k); `field(t, q, u) → (q̇, u̇)`, `rates(t, q, u) → q̇`,
@@ -50,6 +56,8 @@ class AbstractDiscretisation(eqx.Module):
 
 class Euler(AbstractDiscretisation):
     """The explicit Euler method, x_{k+1} = x_k + Δt ẋ(t_k, x_k): first order."""
+
+    stability_limit: ClassVar[float | None] = 2.0
 
     def step(self, field, rates, t, q, u, dt, system=None):
         qd, ud = field(t, q, u)
@@ -65,6 +73,10 @@ class SemiImplicitEuler(AbstractDiscretisation):
     Crocoddyl's default integrated action model (`IntegratedActionModelEuler`), which keeps
     a pendulum's energy bounded where the explicit method lets it grow."""
 
+    # (coordinates whose rates do not involve the speeds, such as a contact scene's ground
+    # deformations, are stepped by the explicit method)
+    stability_limit: ClassVar[float | None] = 2.0
+
     def step(self, field, rates, t, q, u, dt, system=None):
         _, ud = field(t, q, u)
         u_next = u + dt * ud
@@ -77,6 +89,9 @@ class RungeKutta4(AbstractDiscretisation):
 
         k₁ = ẋ(t, x),  k₂ = ẋ(t + Δt/2, x + Δt k₁/2),  k₃ = ẋ(t + Δt/2, x + Δt k₂/2),
         k₄ = ẋ(t + Δt, x + Δt k₃),   x_{k+1} = x + Δt (k₁ + 2k₂ + 2k₃ + k₄)/6."""
+
+    # (|1 + z + z²/2 + z³/6 + z⁴/24| ≤ 1 for −2.785 ≤ z ≤ 0)
+    stability_limit: ClassVar[float | None] = 2.785
 
     def step(self, field, rates, t, q, u, dt, system=None):
         def stage(c, dq, du):
@@ -163,7 +178,10 @@ class ShootingProblem(eqx.Module):
     **Arguments:**
 
     - `dynamics`: any jaxdyn formulation driven by inputs (`jaxdyn.Controlled`, possibly
-      inside `Constrained`): `Lagrangian`, `GibbsAppell`, `Kane`, `ArticulatedBody` (robots).
+      inside `Constrained` or a compliant `Contact` scene): `Lagrangian`, `GibbsAppell`,
+      `Kane`, `ArticulatedBody` (robots). A `Contact` scene's coordinates are (q, ξ), the
+      ground's deformations appended; an explicit step must be shorter than twice their
+      relaxation time c_t/k_t (2.785 times for `RungeKutta4`), else a `ValueError`.
     - `running_cost`: ℓ(q, u, r, p) → a scalar, or a residual vector ρ for ℓ = ½‖ρ‖²
       (ℓ(t, q, u, r, p) with `time_dependent`). Write least-squares costs (tracking,
       reaching, regularisation, weights folded into ρ) as residuals: iLQR then uses the
@@ -241,6 +259,7 @@ class ShootingProblem(eqx.Module):
                              "jaxdyn.VariationalStep(), got "
                              f"{type(self.discretisation).__name__}.")
         self.discretisation.check(self.dynamics)
+        _check_contact_steps(self.dynamics, self.discretisation, float(self.dt))
         if self.input_bounds is not None and len(self.input_bounds) != 2:
             raise ValueError("input_bounds must be a pair (r_lo, r_hi).")
         for name, value, form in (("path_constraints", self.path_constraints,
@@ -450,6 +469,29 @@ def _first_kind_accelerations_jvp(dynamics, primals, tangents):
 
     _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
     return ud, kkt.solve(-d_first, -d_second)[0]
+
+
+def _check_contact_steps(dynamics, discretisation, dt):
+    """A ValueError where a compliant contact scene's ground deformation relaxes faster than
+    the fixed explicit step can follow: ξ would grow without bound (off contact ξ̇ = −ξ/τ),
+    and with it friction would be lost, while the solver still converges on the wrong
+    physics."""
+    limit = discretisation.stability_limit
+    if limit is None:
+        return
+    scenes = [x for x in jax.tree_util.tree_leaves(
+        dynamics, is_leaf=lambda x: isinstance(x, Contact)) if isinstance(x, Contact)]
+    for scene in scenes:
+        tau = scene.model.relaxation_time()
+        if tau is not None and dt >= limit * tau:
+            raise ValueError(
+                f"The contact scene's ground deformation relaxes in τ = c_t/k_t = "
+                f"{tau * 1e3:.3g} ms, faster than {type(discretisation).__name__}'s fixed step "
+                f"of {dt * 1e3:.3g} ms can follow (stable below {limit:g}τ = "
+                f"{limit * tau * 1e3:.3g} ms): the deformation would grow without bound and "
+                "friction be lost. Take a shorter dt, or a slower relaxation: "
+                f"HuntCrossley(..., tangential_damping=k_t × τ) with τ > {dt / limit * 1e3:.3g} "
+                "ms.")
 
 
 def _cost_value(value, name):
