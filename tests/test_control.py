@@ -406,6 +406,12 @@ def test_input_errors_name_the_problem():
     with pytest.raises(ValueError, match="input_map names speed 5"):
         jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), [5]).accelerations(
             0.0, jnp.zeros(2), jnp.zeros(2), CART_POLE)
+    with pytest.raises(ValueError, match="B has 3 rows, but the system has 2 speeds"):
+        jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V),
+                          np.ones((3, 1))).accelerations(0.0, jnp.zeros(2), jnp.zeros(2),
+                                                         CART_POLE)
+    with pytest.raises(ValueError, match="a constant B as an array"):  # a column, not indices
+        jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), np.array([1.0, 0.0]))
     with pytest.raises(ValueError, match=r"directions must be an array \(2, k\)"):
         jaxdyn.Controlled(jaxdyn.Lagrangian(cart_pole_T, cart_pole_V), jaxdyn.ForceInput(
             lambda q, p: q, directions=[1.0, 0.0])).input_matrix(0.0, jnp.zeros(2),
@@ -419,6 +425,19 @@ def test_input_errors_name_the_problem():
         jax.block_until_ready(jax.jit(
             lambda q: jaxdyn.linearise(driven, 0.0, q, jnp.zeros(1), {}, jnp.zeros(1)).B)(
                 jnp.zeros(1)))
+
+
+def test_a_constant_input_map_given_as_an_array():
+    """B as an array (m, k): a free particle of mass m in the plane pushed by two inputs along
+    the columns of B accelerates by B r / m (Newton's second law)."""
+    m = 2.5
+    particle = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * m * qd @ qd)
+    b = np.array([[1.0, 0.5], [0.0, 2.0]])
+    r = jnp.array([3.0, -1.0])
+    plant = jaxdyn.Controlled(particle, b, inputs=r)
+    np.testing.assert_allclose(plant.accelerations(0.0, jnp.zeros(2), jnp.zeros(2)),
+                               b @ np.asarray(r) / m, rtol=1e-14)
+    assert plant.with_inputs(2 * r).input_matrix(0.0, jnp.zeros(2), jnp.zeros(2)).shape == (2, 2)
 
 
 def test_rolling_disc_stability_boundary():

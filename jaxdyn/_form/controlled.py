@@ -144,7 +144,8 @@ class Controlled(AbstractDynamics):
 
     - `dynamics`: the formulation driven (`Lagrangian`, `GibbsAppell`, `Kane`,
       `ArticulatedBody`, `IndependentSpeeds`, …).
-    - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`); a sequence of the
+    - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`); a constant B as an
+      array (m, k); a sequence of the
       indices of the actuated speeds (B = columns of the identity: one input per index); a
       `ForceInput` or `TorqueInput`; or a tuple of these, whose columns are concatenated (the
       inputs in that order).
@@ -158,7 +159,7 @@ class Controlled(AbstractDynamics):
     """
 
     dynamics: AbstractDynamics
-    input_map: "Callable | ForceInput | TorqueInput | _Actuated | _Stacked | None"
+    input_map: "Callable | ForceInput | TorqueInput | _Actuated | _Constant | _Stacked | None"
     actuated: tuple[int, ...] | None = eqx.field(static=True)
     inputs: Any = None
     time_dependent: bool = eqx.field(default=False, static=True)
@@ -173,6 +174,8 @@ class Controlled(AbstractDynamics):
                 x if _is_map(x) else _Actuated(_indices(x)) for x in input_map)), None
         elif _is_map(input_map):
             self.input_map, self.actuated = input_map, None
+        elif isinstance(input_map, (np.ndarray, jax.Array)) and input_map.ndim == 2:
+            self.input_map, self.actuated = _Constant(input_map), None
         else:
             self.input_map, self.actuated = None, _indices(input_map)
         self.dynamics = dynamics
@@ -296,10 +299,16 @@ class Controlled(AbstractDynamics):
 
 
 def _indices(input_map) -> tuple[int, ...]:
-    indices = tuple(int(i) for i in np.atleast_1d(np.asarray(input_map)))
+    try:
+        values = np.atleast_1d(np.asarray(input_map))
+    except ValueError:  # (ragged)
+        values = np.zeros((0,))
+    indices = (tuple(int(i) for i in values)
+               if values.ndim == 1 and np.issubdtype(values.dtype, np.integer) else ())
     if not indices or len(set(indices)) != len(indices) or min(indices) < 0:
-        raise ValueError("input_map must be B(q, p) → (m, k) or distinct non-negative "
-                         f"indices of actuated speeds, got {input_map!r}.")
+        raise ValueError("input_map must be B(q, p) → (m, k), a constant B as an array "
+                         "(m, k), or distinct non-negative indices of actuated speeds, got "
+                         f"{input_map!r}.")
     return indices
 
 
@@ -316,6 +325,18 @@ class _Actuated(eqx.Module):
         return jnp.asarray(np.eye(num_speeds, dtype=q.dtype)[:, list(self.indices)])
 
 
+class _Constant(eqx.Module):
+    """A constant input map, B given as an array (m, k)."""
+
+    value: Any
+
+    def matrix(self, controlled, t, q, p, num_speeds):
+        if self.value.shape[0] != num_speeds:
+            raise ValueError(f"input_map B has {self.value.shape[0]} rows, but the system has "
+                             f"{num_speeds} speeds: B must be (m, k) with m = {num_speeds}.")
+        return jnp.asarray(self.value, q.dtype)
+
+
 class _Stacked(eqx.Module):
     """The columns of several input maps side by side (a tuple given as `input_map`)."""
 
@@ -328,10 +349,11 @@ class _Stacked(eqx.Module):
             ._input_matrix(t, q, p, num_speeds) for x in self.maps], axis=1)
 
 
-_MAPS = (ForceInput, TorqueInput, _Actuated, _Stacked)
+_MAPS = (ForceInput, TorqueInput, _Actuated, _Constant, _Stacked)
 
 
-def _is_map(x) -> TypeGuard[Callable | ForceInput | TorqueInput | _Actuated | _Stacked]:
+def _is_map(x) -> TypeGuard[Callable | ForceInput | TorqueInput | _Actuated | _Constant
+                             | _Stacked]:
     return callable(x) or isinstance(x, _MAPS)
 
 
