@@ -226,15 +226,14 @@ def chain_by_hand(theta, omega):
 @pytest.mark.parametrize("n", [3, pytest.param(20, marks=pytest.mark.slow)])
 def test_chain_against_hand_written_equations(n, monkeypatch):
     """Relative joint angles q: θ = cumsum(q), θ̈ = cumsum(q̈). N = 3 runs the recursions as a
-    Python loop, N = 20 as a scan (the form for chains: the carry is the parent's state); and
-    the scan once more for N = 3 (LOOP_MAX lowered)."""
-    if n > 3:
-        monkeypatch.setattr(jaxdyn._system.tree_levels, "LOOP_MAX", 12)
+    Python loop, N = 20 as a scan (the form of chains of `CHAIN_LOOP_MIN` links or more: the
+    carry is the parent's state); and the scan once more for N = 3 (LOOP_MAX lowered)."""
     rng = np.random.default_rng(n)
     q, u = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
     absolute = chain_by_hand(np.cumsum(q), np.cumsum(u))
     expected_relative = np.diff(np.concatenate([[0.0], absolute]))
     tree = chain_tree(n)
+    assert tree.scan_head() == (n if n < jaxdyn._system.tree_levels.CHAIN_LOOP_MIN else 0)
     for label, dynamics in _formulations(tree).items():
         assert_close(dynamics.accelerations(0.0, q, u, None), expected_relative, rtol=0,
                      atol=1e-10 * np.max(np.abs(expected_relative)), err_msg=label)

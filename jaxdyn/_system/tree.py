@@ -298,13 +298,16 @@ class RigidBodyTree(AbstractMultibody):
     def scan_head(self, loop_max: int | None = None) -> int:
         """How many leading links a recursion takes one by one before the rest, which it
         takes level by level (branched trees of `LEVELS_MIN` to `LOOP_MAX` links) or in a
-        `lax.scan` (trees of more than `loop_max` links, default `LOOP_MAX`); all of them in
-        chains and other trees: the roots on joints of more than one speed, such as a
-        floating base, so that the other links carry the width of their own joints (one speed
-        each in most robots), not the base's six."""
+        `lax.scan` (trees of more than `loop_max` links, default `LOOP_MAX`, and chains of
+        `CHAIN_LOOP_MIN` links or more): all of them in shorter chains and small trees; else
+        the roots on joints of more than one speed, such as a floating base, so that the
+        other links carry the width of their own joints (one speed each in most robots), not
+        the base's six."""
         n = len(self.links)
+        chain = self._is_chain()
         if n <= (tree_levels.LOOP_MAX if loop_max is None else loop_max) and (
-                n < tree_levels.LEVELS_MIN or n > tree_levels.LOOP_MAX or self._is_chain()):
+                n < tree_levels.LEVELS_MIN or n > tree_levels.LOOP_MAX or chain) and not (
+                chain and n >= tree_levels.CHAIN_LOOP_MIN):
             return n
         head = 0
         while head < n and self.parents[head] < 0 and self.links[head].joint.nv > 1:

@@ -35,6 +35,16 @@ LOOP_MAX = 24
 # level").
 LEVELS_MIN = 12
 
+# Unbranched chains of at least this many links run their recursions in a `lax.scan` (after
+# a floating base), at any `LOOP_MAX`: written out, a chain is a level per link and XLA
+# compiles a long dependent sequence as one function, for no faster a run. Chains of 16 and
+# 20 links, their first `simulate` (Dopri8, 1 s) as a scan against straight-line code: the
+# articulated-body algorithm 1.6 / 3.3 s and 1.4 / 4.0 s with runs of 5.0 / 5.7 and
+# 6.2 / 6.7 ms; Kane's equations 3.1 / 6.3 s and 4.0 / 8.9 s, runs equal; a vmap of 1024
+# states' accelerations 2.9 / 3.1 and 3.6 / 4.0 µs a state (benchmarks/LOG.md, "Chains as
+# scans"). Shorter chains' equations are written out as scalar code, where a scan costs more.
+CHAIN_LOOP_MIN = 16
+
 # The links' poses alone, a rotation and an offset composed per link, are straight-line code up
 # to this many links (level by level in branched trees of `LEVELS_MIN` to `LOOP_MAX` links):
 # Talos's 45 cost 1.6 µs per state against 2.1 level by level, its mass matrix 6.2–6.9
