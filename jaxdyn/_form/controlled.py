@@ -145,10 +145,9 @@ class Controlled(AbstractDynamics):
     - `dynamics`: the formulation driven (`Lagrangian`, `GibbsAppell`, `Kane`,
       `ArticulatedBody`, `IndependentSpeeds`, …).
     - `input_map`: B(q, p) → (m, k) (B(t, q, p) with `time_dependent`); a constant B as an
-      array (m, k); a sequence of the
-      indices of the actuated speeds (B = columns of the identity: one input per index); a
-      `ForceInput` or `TorqueInput`; or a tuple of these, whose columns are concatenated (the
-      inputs in that order).
+      array (m, k); a sequence of the indices of the actuated speeds (B = columns of the
+      identity: one input per index); a `ForceInput` or `TorqueInput`; or a tuple of these,
+      whose columns are concatenated (the inputs in that order).
     - `inputs`: as above; None for r = 0.
     - `time_dependent`: if True, B takes t first.
 

@@ -73,8 +73,8 @@ class SemiImplicitEuler(AbstractDiscretisation):
     Crocoddyl's default integrated action model (`IntegratedActionModelEuler`), which keeps
     a pendulum's energy bounded where the explicit method lets it grow."""
 
-    # (coordinates whose rates do not involve the speeds, such as a contact scene's ground
-    # deformations, are stepped by the explicit method)
+    # (a contact scene's ground deformations ξ are coordinates whose rates depend on
+    # themselves, ξ̇ = ξ̇(q, ξ, u): the method steps them explicitly in ξ)
     stability_limit: ClassVar[float | None] = 2.0
 
     def step(self, field, rates, t, q, u, dt, system=None):
