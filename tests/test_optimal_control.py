@@ -533,6 +533,27 @@ def test_a_block_pushed_against_coulomb_friction_in_compliant_contact():
                                m * least_norm[sliding] + mu * m * g, atol=0.05)
 
 
+def test_mpc_pushes_the_block_in_compliant_contact():
+    """MPC on the contact scene: the closed loop carries the ground's deformation with the
+    block's state, and its states are the plant's own motion under the inputs it applied
+    (`simulate` of the scene with those inputs held over each interval)."""
+    m, g, mu = BLOCK["m"], BLOCK["g"], BLOCK["mu"]
+    scene, dt, steps = block_scene(0.02), 0.01, 5
+    problem = jaxdyn.ShootingProblem(
+        scene, lambda q, u, r, p: jnp.concatenate([0.1 * r, 10 * (q[:1] - 1.0), u[:1]]),
+        num_nodes=20, dt=dt, discretisation=jaxdyn.SemiImplicitEuler())
+    q0 = jnp.array([0.0, 0.0, -(m * g / BLOCK["k"]) ** (2 / 3)])
+    loop = jaxdyn.model_predictive_control(problem, q0, jnp.zeros(3), {}, num_steps=steps,
+                                           inputs=jnp.full((20, 1), 1.2 * mu * m * g))
+    assert loop.q.shape == (steps + 1, 6)  # (q, ξ)
+    assert float(loop.q[-1, 0]) > 0.01  # pushed forward, past sticking
+    applied = loop.inputs[:, 0]
+    replay = jaxdyn.simulate(scene.with_inputs(lambda t: applied[jnp.minimum(
+        jnp.floor(t / dt + 1e-9).astype(int), steps - 1)][None]), q0, jnp.zeros(3), {},
+        t1=steps * dt, ts=loop.ts, rtol=1e-10, atol=1e-10, max_steps=100_000)
+    np.testing.assert_allclose(replay.q, loop.q, atol=1e-6)
+
+
 def test_a_contact_step_too_long_for_the_ground_is_named():
     """The ground's deformation relaxes in τ = 2 ms by default: an explicit step of 5 ms would
     let it grow without bound (and lose friction)."""
