@@ -65,6 +65,9 @@ from .controlled import Controlled
 # penetration at which compliant ground holds a body, so that the step's stages meet the force.
 APPROACH_DEPTH = 1e-3
 
+# The ground's tangential relaxation time c_t / k_t (s) when no damping is given.
+DEFAULT_RELAXATION = 2e-3
+
 
 class HuntCrossley(eqx.Module):
     r"""The compliant contact law of the module docstring: a Hunt–Crossley normal force
@@ -118,7 +121,7 @@ class HuntCrossley(eqx.Module):
         fastest rate of the tangential model, which a fixed explicit step must resolve. None
         where c_t or k_t is a function of the parameters (or traced)."""
         if self.tangential_damping is None:
-            return 2e-3
+            return DEFAULT_RELAXATION
         k_t = self.stiffness if self.tangential_stiffness is None else self.tangential_stiffness
         if any(callable(x) or isinstance(x, jax.core.Tracer)
                for x in (self.tangential_damping, k_t)):
@@ -141,7 +144,7 @@ class HuntCrossley(eqx.Module):
                                                               self.friction))
         k_t = k if self.tangential_stiffness is None else _value(
             self.tangential_stiffness, p).astype(dtype)
-        c_t = 2e-3 * k_t if self.tangential_damping is None else _value(
+        c_t = DEFAULT_RELAXATION * k_t if self.tangential_damping is None else _value(
             self.tangential_damping, p).astype(dtype)
         n, v = kinematics.normal, kinematics.velocity
         v_n = jnp.sum(n * v, axis=-1)
