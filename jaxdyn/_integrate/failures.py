@@ -144,25 +144,49 @@ def guard(controller):
 
 
 def _guard_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
-    t_next, state = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
+    layout = solve_arguments(args)[3]
+    if dt0 is None and layout is not None and layout.span is not None:
+        # A solve in s = (t − t₀)/(t₁ − t₀) (`jaxdyn._integrate.solve`): diffrax's first step
+        # (E. Hairer, S. P. Nørsett, G. Wanner, Solving Ordinary Differential Equations I,
+        # §II.4) is not invariant under a scaling of time, so it is chosen in the time
+        # τ = |t₁ − t₀| s, as diffrax chooses it in t (a backward solve: in −t).
+        length = jnp.abs(layout.span)
+        zero = length == 0
+        inverse = jnp.where(zero, 0, 1 / jnp.where(zero, 1, length))
+        direction = jnp.sign(layout.span)
+
+        def func_in_t(terms, tau, y, args):  # (`func` gives dy/dt: the term's `vf`)
+            return jax.tree_util.tree_map(lambda rate: direction * rate,
+                                          func(terms, tau * inverse, y, args))
+
+        tau_next, state = controller.init(terms, t0, length, y0, None, args, func_in_t,
+                                          error_order)
+        t_next = t0 + jnp.where(zero, 1, (tau_next - t0) * inverse)
+    else:
+        t_next, state = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
         t_next = jnp.minimum(t_next, t0 + _step_bound(args, t0, y0))
     return t_next, (state, jnp.abs(t1 - t0), jnp.array(False))
 
 
-def _step_bound(args, t, y):
-    """The longest next step the dynamics allow from (t, y) (`AbstractDynamics.step_bound`:
-    contacts not yet touching must not be stepped over), from the solve's arguments (those
-    of the plain solve, or of the forward-sensitivity solve, whose state is y then the
-    sensitivities)."""
-    if not isinstance(args, tuple) or not args:
-        return jnp.inf
-    if isinstance(args[0], tuple) and args[0] and isinstance(args[0][0], AbstractDynamics):
+def solve_arguments(args):
+    """(dynamics, p, factorisation, layout) of the solve's arguments (those of the plain
+    solve, or of the forward-sensitivity solve, whose state is y then the sensitivities);
+    Nones where they are not a jaxdyn solve's."""
+    if isinstance(args, tuple) and args and isinstance(args[0], tuple) and args[0] \
+            and isinstance(args[0][0], AbstractDynamics):
         args = args[0]  # (the sensitivity solve's: ((dynamics, p, ...), directions))
-    if not isinstance(args[0], AbstractDynamics) or len(args) < 4:
-        return jnp.inf
-    dynamics, p, _, layout = args[:4]
-    if not dynamics.bounds_steps:
+    if not (isinstance(args, tuple) and len(args) >= 4
+            and isinstance(args[0], AbstractDynamics)):
+        return None, None, None, None
+    return args[:4]
+
+
+def _step_bound(args, t, y):
+    """The longest next step, in diffrax's time, the dynamics allow from (t, y)
+    (`AbstractDynamics.step_bound`: contacts not yet touching must not be stepped over)."""
+    dynamics, p, _, layout = solve_arguments(args)
+    if dynamics is None or layout is None or not dynamics.bounds_steps:
         return jnp.inf
     if layout.flat:  # (y, or y then the sensitivities: y's q and u come first)
         q, u = y[:layout.n], y[layout.n:layout.n + layout.m]
@@ -171,7 +195,8 @@ def _step_bound(args, t, y):
     # A tree's kinematics, like its other recursions, batch in chunks under `vmap`
     # (`jaxdyn._chunking`): ANYmal-C's bound over 256 states, 1.4-2.2 µs per state against
     # 1.9-3.2 vmapped whole.
-    return chunked_vmap(dynamics.step_bound)(t, q, u, p).astype(jnp.result_type(t))
+    return layout.duration(chunked_vmap(dynamics.step_bound)(layout.time(t), q, u, p)).astype(
+        jnp.result_type(t))
 
 
 def _guard_adapt(controller, can_shrink, t0, t1, y0, y1_candidate, args, y_error,

@@ -1,6 +1,8 @@
 """diffrax's solve of the equations of motion: the state's layout, the vector field, and how
 the solve is differentiated (forward sensitivities or reverse mode through checkpoints)."""
 
+from typing import Any, cast
+
 import diffrax
 import equinox as eqx
 import jax
@@ -10,7 +12,7 @@ from .._dynamics import equations_of_motion
 from .._sensitivities import with_sensitivities
 from .._runge_kutta import UnrolledStages
 from .._wrapped_solver import AbstractForwardingSolver
-from .failures import GuardedAdaptive
+from .failures import GuardedAdaptive, solve_arguments
 
 
 class Layout(eqx.Module):
@@ -27,6 +29,17 @@ class Layout(eqx.Module):
     n: int = eqx.field(static=True)
     flat: bool = eqx.field(static=True)
     m: int = eqx.field(static=True, default=0)  # the speeds (read by step bounds)
+    # diffrax's time s: t = origin + span s (`solve`); None: s = t.
+    origin: Any = None
+    span: Any = None
+
+    def time(self, s):
+        """The time t at diffrax's time s."""
+        return s if self.origin is None else self.origin + self.span * s
+
+    def duration(self, duration):
+        """A duration in t (≥ 0) in diffrax's time."""
+        return duration if self.span is None else duration / jnp.abs(self.span)
 
     def join(self, q, u):
         return jnp.concatenate([q, u], axis=-1) if self.flat else (q, u)
@@ -38,7 +51,8 @@ class Layout(eqx.Module):
 def vector_field(t, y, args):
     dynamics, p, factorisation, layout = args[:4]  # (a hybrid solve's args carry a fifth)
     q, u = layout.split(y)
-    rates, accelerations, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+    rates, accelerations, _, _ = equations_of_motion(dynamics, layout.time(t), q, u, p,
+                                                     factorisation)
     return layout.join(rates, accelerations)
 
 
@@ -49,13 +63,21 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
     through checkpoints). Returns the `diffrax.Solution` (`throw=False`: jaxdyn raises its
     own errors after the solve). With `events`, the solve of a hybrid system
     (`jaxdyn._integrate.events`: a `HybridSolution`)."""
+    times, requested = (t0, t1), saveat
+    unit_interval = _on_unit_interval(y0, args, saveat, controller, events)
+    if unit_interval:
+        t0, t1, dt0, args, saveat = _unit_interval(t0, t1, dt0, args, saveat)
+
     def run(inputs, adjoint, vector_field=vector_field):
         t0, t1, dt0, y0, args, saveat, controller, events = inputs
         if events is not None:
             from .events import hybrid_solve  # (it builds on this module)
             return hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint,
                                 max_steps, events, max_events)
-        return diffrax.diffeqsolve(diffrax.ODETerm(vector_field), solver, t0, t1, dt0, y0,
+        term = diffrax.ODETerm(vector_field)
+        if unit_interval:  # (the layout in args is the one `_unit_interval` set)
+            term = _InScaledTime(vector_field, cast(Layout, solve_arguments(args)[3]).span)
+        return diffrax.diffeqsolve(term, solver, t0, t1, dt0, y0,
                                    args=args, saveat=saveat, stepsize_controller=controller,
                                    adjoint=adjoint, max_steps=max_steps, throw=False)
 
@@ -63,7 +85,9 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
     # parameters, not constants closed over by its derivative rule.
     inputs = (t0, t1, dt0, y0, args, saveat, controller, events)
     if not forward:
-        return run(inputs, diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint)
+        solution = run(inputs,
+                       diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint)
+        return _times_back(solution, requested, *times) if unit_interval else solution
     dynamic, static = eqx.partition(inputs, eqx.is_array)
 
     def arrays_out(dynamic):  # what `simulate` reads of the solution, all arrays
@@ -73,8 +97,84 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
     def sensitivity_solve(dynamic, basis):
         return _sensitivity_equations(run, solver, eqx.combine(dynamic, static), basis)
 
-    return with_sensitivities(arrays_out, dynamic,
-                              sensitivity_solve if events is None else None)
+    solution = with_sensitivities(arrays_out, dynamic,
+                                  sensitivity_solve if events is None else None)
+    return _times_back(solution, requested, *times) if unit_interval else solution
+
+
+def _on_unit_interval(y0, args, saveat, controller, events):
+    """Whether the solve runs in the time s = (t − t₀)/(t₁ − t₀) (`_unit_interval`).
+
+    diffrax rounds a step that ends within 100 ulps of its t₁ to t₁, and finds that threshold
+    by 100 successive `nextafter`s of t₁ times the direction of integration. Unless t₀ and t₁
+    are both constants of the program, XLA compiles that chain of about 2200 operations:
+    0.45-0.6 s, a third of a small system's compilation. jaxdyn keeps the times inputs of its
+    programs (a new end time compiles nothing), and diffrax's constants are 0 and 1 in s.
+
+    The solve in s is the solve in t: explicit and implicit Runge–Kutta methods are
+    invariant under an affine change of time, and so is the PID controller, whose first step
+    (a heuristic that is not) is chosen in t (`jaxdyn._integrate.failures`). So for diffrax's
+    solvers on the flat state with a `PIDController` without step bounds in t (dtmin,
+    dtmax), saving at requested times or the end, in the default floating-point type (that of
+    diffrax's times 0 and 1). The structure-preserving steppers, fixed steps (whose round-off
+    near t₁ diffrax's 100 ulps absorb in t), dense output (read at times t), hybrid solves
+    and float32 under x64 keep the time t."""
+    subs = saveat.subs if isinstance(saveat.subs, (list, tuple)) else [saveat.subs]
+    layout = args[3] if isinstance(args, tuple) and len(args) == 4 else None
+    return (events is None and not saveat.dense and isinstance(layout, Layout) and layout.flat
+            and isinstance(y0, jax.Array) and y0.dtype == jnp.asarray(0.0).dtype
+            and isinstance(controller, GuardedAdaptive)
+            and type(controller.controller) is diffrax.PIDController
+            and controller.controller.dtmin is None and controller.controller.dtmax is None
+            and all(not (sub.t0 or sub.steps) for sub in subs))
+
+
+def _unit_interval(t0, t1, dt0, args, saveat):
+    """(s₀ = 0, s₁ = 1, the first step, args, saveat) of the solve in s = (t − t₀)/(t₁ − t₀):
+    the layout maps s to t (`Layout.time`), the save times and a first step given in t are
+    mapped to s. (t₁ = t₀: a step over s ∈ [0, 1] of length zero in t.)"""
+    dynamics, p, factorisation, layout = args
+    span = t1 - t0
+    layout = eqx.tree_at(lambda l: (l.origin, l.span), layout, (t0, span),
+                         is_leaf=lambda x: x is None)
+
+    def in_s(t, at_zero_span):
+        return jnp.where(span == 0, at_zero_span, (t - t0) / jnp.where(span == 0, 1, span))
+
+    saveat = eqx.tree_at(
+        lambda s: [sub.ts for sub in s.subs if sub.ts is not None], saveat,
+        [in_s(sub.ts, 1.0) for sub in saveat.subs if sub.ts is not None])
+    if dt0 is not None:
+        dt0 = jnp.where(span == 0, 1.0, dt0 / jnp.where(span == 0, 1, span))
+    # Python numbers: constants of the program, as diffrax's t₀ and t₁.
+    return 0.0, 1.0, dt0, (dynamics, p, factorisation, layout), saveat
+
+
+class _InScaledTime(diffrax.ODETerm):
+    """dy/dt = f(t, y) in diffrax's time s = (t − t₀)/(t₁ − t₀): `vf` is f at t (the
+    layout's `time`), the control of a step is its length in t, h = (t₁ − t₀) Δs, so that
+    each stage h f is formed as in t."""
+
+    span: Any = None
+
+    def contr(self, t0, t1, **kwargs):
+        return self.span * (t1 - t0)
+
+
+def _times_back(solution, saveat, t0, t1):
+    """The solution's save times in t: the requested times themselves where saved (as a
+    solve in t returns them), diffrax's inf where not reached (a failed solve), and the time
+    reached where the end is saved (t₁, or where a failed solve stopped)."""
+    def back(sub, saved):
+        if sub.ts is not None:
+            requested = jnp.where(jnp.isfinite(saved[:len(sub.ts)]), sub.ts,
+                                  saved[:len(sub.ts)])
+            return jnp.concatenate([requested, back(eqx.tree_at(lambda s: s.ts, sub, None),
+                                                    saved[len(sub.ts):])])
+        return jnp.where(saved == 1, t1, t0 + (t1 - t0) * saved)
+
+    return eqx.tree_at(lambda s: s.ts, solution,
+                       [back(sub, saved) for sub, saved in zip(saveat.subs, solution.ts)])
 
 
 def _sensitivity_equations(run, solver, inputs, basis):
@@ -101,7 +201,11 @@ def _sensitivity_equations(run, solver, inputs, basis):
               for part in inputs]
     first_y0 = sum(counts[:3])
     first_args = first_y0 + counts[3]
-    if any(b is not None for b in basis[:first_y0] + basis[first_args + counts[4]:]):
+    # The solve's times, in t or (the layout's origin and span, its last leaves of args) in
+    # s, enter through the steps, which the sensitivity equations hold fixed.
+    times_in_args = len(jax.tree_util.tree_leaves(eqx.filter(args[3], eqx.is_array)))
+    if any(b is not None for b in basis[:first_y0] + basis[first_args + counts[4]:]
+           + basis[first_args + counts[4] - times_in_args:first_args + counts[4]]):
         return None
     # By type, not isinstance: diffrax counts a wrapped solver (`Projected`, whose projection
     # the sensitivities would have to follow) as an instance of the solver it wraps.
@@ -189,7 +293,7 @@ class Projected(AbstractForwardingSolver):
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, True)
         dynamics, p, _, layout = args[:4]
-        y1 = layout.join(*dynamics.state_projection()(t1, *layout.split(y1), p))
+        y1 = layout.join(*dynamics.state_projection()(layout.time(t1), *layout.split(y1), p))
         if "y1" in dense_info:
             dense_info = dict(dense_info, y1=y1)
         return y1, y_error, dense_info, solver_state, result
