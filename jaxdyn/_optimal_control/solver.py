@@ -13,7 +13,12 @@ so that a step of length α closes the fraction α of every gap g (Mastalli et a
 ICRA 2020); from a feasible guess the gaps are zero and this is the classical method. A step
 is taken when the cost falls by at least a tenth of the model's prediction (or, where the
 model predicts a rise, as it does while gaps are being closed or inputs move onto their
-bounds, rises by at most twice the prediction). The
+bounds, rises by at most twice the prediction), or, where the model predicts a change
+below 10⁻¹² |J| and the tolerance, when the cost changes by less than the tolerance: such
+steps are taken as Crocoddyl takes those whose expected improvement is below its
+`th_grad`, since the cost's round-off, amplified along the rollout and by stiff penalties,
+can exceed the predicted change and would otherwise reject every trial, raise μ and stall
+the solve at its iteration limit short of the convergence test. The
 Levenberg–Marquardt regularisation μ of Q_rr starts at 0, grows tenfold (from 10⁻⁹) where
 Q_rr + μI is not positive definite or no step is taken, and shrinks tenfold (to 0 below 10⁻⁹)
 where a step of at least ½ is taken (Tassa, Erez
@@ -41,6 +46,8 @@ MESSAGES = {CONVERGED: "converged: the predicted decrease fell below the toleran
                       "regularisation, or the cost is not finite"}
 _STEPS = 0.5 ** np.arange(10.0)  # NumPy: nothing computed with JAX at import
 _REGULARISATION = (1e-9, 1e9)  # the least nonzero and the largest μ (Crocoddyl's bounds)
+_UNRESOLVED = 1e-12  # relative: predicted changes of the cost taken untested below it (the
+# cost's round-off, 10⁻¹⁶ |J|, grows by orders of magnitude in a stiff penalty and a rollout)
 
 
 class AbstractTrajectorySolver(eqx.Module):
@@ -194,8 +201,9 @@ def _forward(problem, iterate, gains, alpha, lo, hi, p, num_q):
     return xs, rs, problem.cost(xs, rs, p, num_q)
 
 
-def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q):
-    """The first α in 1, ½, … ¼⁵¹² whose step the acceptance test takes, or none."""
+def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q, tolerance):
+    """The first α in 1, ½, … ¼⁵¹² whose step the acceptance test takes, or none;
+    `tolerance`: the change of the cost below which the solve has converged."""
     def trial(i):
         alpha = jnp.asarray(_STEPS, iterate.xs.dtype)[i]
         xs, rs, cost = _forward(problem, iterate, gains, alpha, lo, hi, p, num_q)
@@ -203,8 +211,13 @@ def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q):
         change = cost - iterate.cost
         # (with the round-off of the cost as slack: the last steps predict changes below it)
         slack = 1e-14 * jnp.abs(iterate.cost)
-        accepted = jnp.isfinite(cost) & jnp.where(
-            predicted < 0, change <= 0.1 * predicted + slack, change <= 2 * predicted + slack)
+        decreased = jnp.where(predicted < 0, change <= 0.1 * predicted + slack,
+                              change <= 2 * predicted + slack)
+        # A change the model puts below what the cost resolves is not tested against the
+        # cost, whose round-off (a stiff penalty's, an unstable rollout's) may exceed it.
+        unmeasured = ((jnp.abs(predicted) <= jnp.minimum(tolerance, _UNRESOLVED * jnp.abs(
+            iterate.cost))) & (change <= tolerance))
+        accepted = jnp.isfinite(cost) & (decreased | unmeasured)
         return xs, rs, cost, alpha, accepted
 
     def body(state):
@@ -261,12 +274,13 @@ def _iteration(problem, solver, lo, hi, p, num_q, tol, iterate: Iterate) -> Iter
     # The predicted decrease measures stationarity only for the Newton step itself: a large μ
     # shortens the step, and with it the prediction, far from an optimum. (In absolute value:
     # box-DDP's model predicts a rise where an input has yet to reach its bound.)
+    tolerance = tol * (1 + jnp.abs(iterate.cost))
     converged = (gains.ok & feasible & (iterate.regularisation <= _REGULARISATION[0])
-                 & (jnp.abs(decrease) <= tol * (1 + jnp.abs(iterate.cost))))
+                 & (jnp.abs(decrease) <= tolerance))
 
     def step(_):
         new_xs, new_rs, cost, alpha, accepted = _line_search(problem, iterate, gains, d1, d2,
-                                                             lo, hi, p, num_q)
+                                                             lo, hi, p, num_q, tolerance)
         mu = iterate.regularisation
         mu = jnp.where(~accepted | (alpha <= 0.01), _raised(mu),
                        jnp.where(alpha >= 0.5, _lowered(mu), mu))
