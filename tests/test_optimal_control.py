@@ -347,8 +347,8 @@ def test_a_solve_whose_steps_the_cost_cannot_resolve_converges(monkeypatch):
     cost (2–6 × 10⁻¹² here, amplified by the penalty's stiffness of 4 × 10⁸), so no trial
     shows its decrease. Those below 10⁻¹² |J| are taken untested (the cost changing by less
     than the tolerance), the regularisation falls and the solve converges with the
-    constraints met, rather than raising μ on trials it
-    cannot tell apart until the iteration limit (or the largest μ, reported as diverged)."""
+    constraints met, rather than raising μ on trials it cannot tell apart until the
+    iteration limit (or the largest μ, reported as diverged)."""
     import jaxdyn._optimal_control.augmented_lagrangian as augmented_lagrangian
 
     monkeypatch.setattr(augmented_lagrangian, "_FIRST_PENALTY", 1.0)
