@@ -213,8 +213,9 @@ def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q, tolerance):
         slack = 1e-14 * jnp.abs(iterate.cost)
         decreased = jnp.where(predicted < 0, change <= 0.1 * predicted + slack,
                               change <= 2 * predicted + slack)
-        # A change the model puts below what the cost resolves is not tested against the
-        # cost, whose round-off (a stiff penalty's, an unstable rollout's) may exceed it.
+        # A change the model puts below what the cost resolves is held to the tolerance, not
+        # to the model: the cost's round-off (a stiff penalty's, an unstable rollout's) may
+        # exceed the predicted change.
         unmeasured = ((jnp.abs(predicted) <= jnp.minimum(tolerance, _UNRESOLVED * jnp.abs(
             iterate.cost))) & (change <= tolerance))
         accepted = jnp.isfinite(cost) & (decreased | unmeasured)
