@@ -303,9 +303,12 @@ class ShootingProblem(eqx.Module):
 
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
+        return _step(self, t, x, r, p, num_q)
+
+    def _step(self, t, x, r, p, num_q):
         driven = self.dynamics.with_inputs(r)
-        implicit = (accelerations if _residual_is_equations(self.dynamics) else
-                    first_kind_accelerations if _first_kind_residuals(self.dynamics) else None)
+        implicit = (_accelerations if _residual_is_equations(self.dynamics) else
+                    _first_kind if _first_kind_residuals(self.dynamics) else None)
 
         def field(t, q, u):
             if implicit is not None:
@@ -396,6 +399,18 @@ class ShootingProblem(eqx.Module):
         return jnp.concatenate([x0[None], xs])
 
 
+# The step is traced once per problem and shapes: the rollout, the line search's trials, the
+# expansion's Jacobians, DDP's curvature, the sensitivities of an optimum and MPC all call
+# it, each under its own transformations (vmap, jacfwd, hessian, grad), which JAX then applies
+# to the one trace (and caches) instead of running the user's energies through them again in
+# Python. The cart-pole from T and V (RK4, 100 nodes, the optimal-control guide): the first
+# jax.grad of the optimal cost 27 → 19 s, the first solve with the variational step 10.8 →
+# 9.5 s (benchmarks/LOG.md, "A step traced once").
+@eqx.filter_jit
+def _step(problem, t, x, r, p, num_q):
+    return problem._step(t, x, r, p, num_q)
+
+
 def _residual_is_equations(dynamics) -> bool:
     """Whether the system's residual R(q, u, u̇, r) = M u̇ − f − B r is the equations its
     accelerations solve: a formulation driven directly, not constrained or in contact."""
@@ -424,12 +439,20 @@ def _accelerations_jvp(dynamics, primals, tangents):
     driven = dynamics.with_inputs(r)
     ud = equations_of_motion(driven, t, q, u, p)[1]
     mass_matrix = formed_equations(driven, t, q, u, p)[0]
-
-    def residual(q, u, r, p):
-        return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
-
-    _, d_residual = jax.jvp(residual, (q, u, r, p), (dq, du, dr, dp))
+    _, d_residual = jax.jvp(functools.partial(_residual, dynamics, t, ud), (q, u, r, p),
+                            (dq, du, dr, dp))
     return ud, -spd_solve(mass_matrix, d_residual)[0]
+
+
+@eqx.filter_jit  # traced once per system and shapes, however often its JVP is asked for
+def _residual(dynamics, t, ud, q, u, r, p):
+    return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
+
+
+# Called through `jax.jit`, the stages of a step share one trace of the accelerations and JAX
+# caches the derivatives of that trace (its JVP rule is traced once, not once per stage and
+# per transformation); see `_step`.
+_accelerations = eqx.filter_jit(accelerations)
 
 
 def _first_kind_residuals(dynamics) -> bool:
@@ -469,6 +492,9 @@ def _first_kind_accelerations_jvp(dynamics, primals, tangents):
 
     _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
     return ud, kkt.solve(-d_first, -d_second)[0]
+
+
+_first_kind = eqx.filter_jit(first_kind_accelerations)
 
 
 def _check_contact_steps(dynamics, discretisation, dt):
