@@ -303,12 +303,17 @@ class ShootingProblem(eqx.Module):
 
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
+        if _holds_arrays(self.dynamics):
+            return self._step(t, x, r, p, num_q)
         return _step(self, t, x, r, p, num_q)
 
     def _step(self, t, x, r, p, num_q):
         driven = self.dynamics.with_inputs(r)
-        implicit = (_accelerations if _residual_is_equations(self.dynamics) else
-                    _first_kind if _first_kind_residuals(self.dynamics) else None)
+        traced_once = not _holds_arrays(self.dynamics)
+        implicit = ((_accelerations if traced_once else accelerations)
+                    if _residual_is_equations(self.dynamics) else
+                    first_kind_accelerations if _first_kind_residuals(self.dynamics)
+                    else None)
 
         def field(t, q, u):
             if implicit is not None:
@@ -406,9 +411,17 @@ class ShootingProblem(eqx.Module):
 # Python. The cart-pole from T and V (RK4, 100 nodes, the optimal-control guide): the first
 # jax.grad of the optimal cost 27 → 19 s, the first solve with the variational step 10.8 →
 # 9.5 s (benchmarks/LOG.md, "A step traced once").
+# Only for systems that hold no arrays: a jit traces those, and the accelerations' custom
+# JVP, which takes the system as a non-differentiated argument, would then close over values
+# of the step's trace when a transformation outside it asks for the rule (a hopper with its
+# foot held by `HeldPoints`, whose holds are arrays: "No constant handler" for a tracer).
 @eqx.filter_jit
 def _step(problem, t, x, r, p, num_q):
     return problem._step(t, x, r, p, num_q)
+
+
+def _holds_arrays(dynamics) -> bool:
+    return bool(jax.tree_util.tree_leaves(eqx.filter(dynamics, eqx.is_array)))
 
 
 def _residual_is_equations(dynamics) -> bool:
@@ -439,14 +452,18 @@ def _accelerations_jvp(dynamics, primals, tangents):
     driven = dynamics.with_inputs(r)
     ud = equations_of_motion(driven, t, q, u, p)[1]
     mass_matrix = formed_equations(driven, t, q, u, p)[0]
-    _, d_residual = jax.jvp(functools.partial(_residual, dynamics, t, ud), (q, u, r, p),
+    residual = _residual_of if _holds_arrays(dynamics) else _residual
+    _, d_residual = jax.jvp(functools.partial(residual, dynamics, t, ud), (q, u, r, p),
                             (dq, du, dr, dp))
     return ud, -spd_solve(mass_matrix, d_residual)[0]
 
 
-@eqx.filter_jit  # traced once per system and shapes, however often its JVP is asked for
-def _residual(dynamics, t, ud, q, u, r, p):
+def _residual_of(dynamics, t, ud, q, u, r, p):
     return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
+
+
+# traced once per system and shapes, however often its JVP is asked for
+_residual = eqx.filter_jit(_residual_of)
 
 
 # Called through `jax.jit`, the stages of a step share one trace of the accelerations and JAX
@@ -493,8 +510,6 @@ def _first_kind_accelerations_jvp(dynamics, primals, tangents):
     _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
     return ud, kkt.solve(-d_first, -d_second)[0]
 
-
-_first_kind = eqx.filter_jit(first_kind_accelerations)
 
 
 def _check_contact_steps(dynamics, discretisation, dt):
