@@ -304,16 +304,13 @@ class ShootingProblem(eqx.Module):
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
         if _holds_arrays(self.dynamics):
-            return self._step(t, x, r, p, num_q)
+            return self._step(t, x, r, p, num_q, accelerations)
         return _step(self, t, x, r, p, num_q)
 
-    def _step(self, t, x, r, p, num_q):
+    def _step(self, t, x, r, p, num_q, driven_accelerations):
         driven = self.dynamics.with_inputs(r)
-        traced_once = not _holds_arrays(self.dynamics)
-        implicit = ((_accelerations if traced_once else accelerations)
-                    if _residual_is_equations(self.dynamics) else
-                    first_kind_accelerations if _first_kind_residuals(self.dynamics)
-                    else None)
+        implicit = (driven_accelerations if _residual_is_equations(self.dynamics) else
+                    first_kind_accelerations if _first_kind_residuals(self.dynamics) else None)
 
         def field(t, q, u):
             if implicit is not None:
@@ -417,7 +414,7 @@ class ShootingProblem(eqx.Module):
 # foot held by `HeldPoints`, whose holds are arrays: "No constant handler" for a tracer).
 @eqx.filter_jit
 def _step(problem, t, x, r, p, num_q):
-    return problem._step(t, x, r, p, num_q)
+    return problem._step(t, x, r, p, num_q, _accelerations)
 
 
 def _holds_arrays(dynamics) -> bool:
@@ -509,7 +506,6 @@ def _first_kind_accelerations_jvp(dynamics, primals, tangents):
 
     _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
     return ud, kkt.solve(-d_first, -d_second)[0]
-
 
 
 def _check_contact_steps(dynamics, discretisation, dt):
