@@ -4,6 +4,7 @@ equation (SciPy), a quadratic program (SciPy), closed-loop simulation and finite
 
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +13,7 @@ import scipy.linalg
 import scipy.optimize
 
 import jaxdyn
-from helpers import central_difference, compiles
+from helpers import assert_close, central_difference, compiles
 from test_control import CART_POLE, cart_pole_T, cart_pole_V
 
 # -- a chain of two masses and springs, pushed on each mass: linear ---------------------------
@@ -232,6 +233,49 @@ def test_gradients_of_a_constrained_optimum_against_finite_differences():
     limits = jnp.array([0.82, 0.85])
     batched = jax.vmap(lambda limit: cost(dict(CONSTRAINED_PARAMETERS, limit=limit)))(limits)
     np.testing.assert_allclose(batched[0], solution.cost, rtol=1e-12)
+
+
+class ChainEnergies(eqx.Module):
+    """The chain's T and V with its masses and stiffnesses held as arrays of the system (a
+    model whose parameters live in its own fields, as a tree's masses do), not in p."""
+
+    m: jax.Array
+    k: jax.Array
+
+    def kinetic(self, q, qd, p):
+        return chain_T(q, qd, dict(m=self.m))
+
+    def potential(self, q, p):
+        return chain_V(q, dict(k=self.k))
+
+
+def test_the_optimum_differentiates_with_respect_to_the_systems_arrays():
+    """Arrays held by the system itself (here the chain's masses and stiffnesses as fields of
+    its energies) are differentiated as p is: the rollout of a plan through the implicit
+    accelerations, and the optimal cost by the implicit function theorem, against central
+    differences (before, the rollout's derivative with respect to them was zero, silently,
+    and the optimum's refused)."""
+    def problem_of(m, k):
+        energies = ChainEnergies(m, k)
+        plant = jaxdyn.Controlled(jaxdyn.Lagrangian(energies.kinetic, energies.potential),
+                                  input_map=[0, 1])
+        return jaxdyn.ShootingProblem(plant, chain_running, num_nodes=20, dt=DT,
+                                      discretisation=jaxdyn.RungeKutta4())
+
+    plan = 0.3 * jnp.sin(jnp.arange(40.0)).reshape(20, 2)
+
+    def reached(mk):
+        return problem_of(mk[:2], mk[2:]).rollout(jnp.asarray(CHAIN_START), plan, None, 2)[-1]
+
+    def cost(mk):
+        return jaxdyn.solve_optimal_control(problem_of(mk[:2], mk[2:]), CHAIN_START[:2],
+                                            CHAIN_START[2:], solver=TIGHT).cost
+
+    mk = np.concatenate([CHAIN["m"], CHAIN["k"]])
+    rollout = jax.jacfwd(reached)(jnp.asarray(mk))
+    assert_close(rollout, central_difference(reached, mk), rtol=1e-7, atol=1e-9)
+    gradient = jax.grad(cost)(jnp.asarray(mk))
+    assert_close(gradient, central_difference(cost, mk, step=1e-5), rtol=1e-6, atol=1e-9)
 
 
 def test_infeasible_constraints_are_reported_not_hidden():

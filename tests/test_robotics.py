@@ -9,6 +9,7 @@ for a planar two-link arm and a pendulum; finite differences for the gradients.
 
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -294,7 +295,8 @@ def test_a_held_robots_step_differentiates_as_finite_differences(hopper):
     """The derivative of a shooting problem's step of the hopper with its foot held
     (`HeldPoints`, Baumgarte's terms), formed from the residuals of Lagrange's equations of
     the first kind (the recursive Newton–Euler algorithm and the points' accelerations),
-    against central differences of the step, in the state and the inputs."""
+    against central differences of the step, in the state and the inputs, and in where the
+    foot is held (an array of the system)."""
     tree, p = hopper.tree, hopper.p
     held = jaxdyn.HeldPoints(tree, ["foot"], [[0.1, -0.2, -0.5]], [[0.01, 0.0, -0.03]])
     plant = jaxdyn.Constrained(jaxdyn.Controlled(jaxdyn.ArticulatedBody(tree), input_map=[6, 7, 8]),
@@ -311,6 +313,17 @@ def test_a_held_robots_step_differentiates_as_finite_differences(hopper):
 
     derivative = jax.jit(jax.jacfwd(step))(jnp.asarray(z))
     numeric = central_difference(jax.jit(step), z, step=1e-6)
+    assert_close(derivative, numeric, rtol=1e-6, atol=1e-6 * np.max(np.abs(numeric)))
+
+    # The hold's position, an array of the system, as differentiable as the state.
+    def moved(position):
+        hold = jaxdyn.HeldPoints(tree, ["foot"], position[None], [[0.01, 0.0, -0.03]])
+        return eqx.tree_at(lambda problem: problem.dynamics.holonomic, problem,
+                           hold).step(0.0, z[:size], z[size:], p, n)
+
+    position = np.array([0.1, -0.2, -0.5])
+    derivative = jax.jit(jax.jacfwd(moved))(jnp.asarray(position))
+    numeric = central_difference(jax.jit(moved), position, step=1e-6)
     assert_close(derivative, numeric, rtol=1e-6, atol=1e-6 * np.max(np.abs(numeric)))
 
 

@@ -145,11 +145,12 @@ def solve_optimal_control(problem: ShootingProblem, q0, u0, p=None, *, inputs=No
 
     Pure JAX: `jax.vmap` solves a batch of problems (initial states, targets or parameters
     in p) in one program, one problem after another, each with its own iterations;
-    `jax.grad` of the optimal trajectory or cost with respect to q0, u0 and p is exact at the
-    optimum by the implicit function theorem (one more Riccati sweep,
-    not the solver's iterations unrolled), and as accurate as the solve: the derivative of the
-    optimal cost is insensitive to the tolerance (the cost is stationary), those of the
-    inputs and states are not (tighten `tol`, or finish with `jaxdyn.DDP()`, whose
+    `jax.grad` of the optimal trajectory or cost with respect to q0, u0, p and the arrays the
+    dynamics hold (a `jaxdyn.RigidBodyTree`'s masses, the places where `jaxdyn.HeldPoints`
+    hold it) is exact at the optimum by the implicit function theorem (one more Riccati
+    sweep, not the solver's iterations unrolled), and as accurate as the solve: the
+    derivative of the optimal cost is insensitive to the tolerance (the cost is stationary),
+    those of the inputs and states are not (tighten `tol`, or finish with `jaxdyn.DDP()`, whose
     convergence is quadratic). A solve that did not converge gives the gradient of the last
     iterate as if it were optimal.
 
@@ -233,7 +234,10 @@ def _solve(problem, solver, q0, u0, p, inputs, states, duals=None):
     xs, inputs = jax.lax.stop_gradient((xs, inputs))
     if duals is not None:
         duals = jax.lax.stop_gradient(duals)
-    iterate, multipliers = _optimum((x_init, p), problem, solver, xs, inputs, num_q,
+    # The problem's floating-point arrays (a tree's masses, a hold's positions, t0) are
+    # differentiated with x̂_0 and p; the rest of it (functions, integers) is static.
+    arrays, rest = eqx.partition(problem, eqx.is_inexact_array)
+    iterate, multipliers = _optimum((x_init, p, arrays), rest, solver, xs, inputs, num_q,
                                     states is None, duals)
     multipliers = jax.lax.stop_gradient(multipliers)
     xs, rs = iterate.xs, iterate.rs
@@ -249,8 +253,9 @@ def _solve(problem, solver, q0, u0, p, inputs, states, duals=None):
 
 
 @eqx.filter_custom_vjp
-def _optimum(theta, problem, solver, xs, rs, num_q, feasible, duals):
-    x_init, p = theta
+def _optimum(theta, rest, solver, xs, rs, num_q, feasible, duals):
+    x_init, p, arrays = theta
+    problem = eqx.combine(arrays, rest)
 
     def solve(problem, solver, x_init, p, xs, rs, duals):
         if problem.constrained:
@@ -269,25 +274,34 @@ def _optimum(theta, problem, solver, xs, rs, num_q, feasible, duals):
 
 
 @_optimum.def_fwd
-def _optimum_fwd(perturbed, theta, problem, solver, xs, rs, num_q, feasible, duals):
+def _optimum_fwd(perturbed, theta, rest, solver, xs, rs, num_q, feasible, duals):
     del perturbed
-    optimum = _optimum.fn(theta, problem, solver, xs, rs, num_q, feasible, duals)
+    optimum = _optimum.fn(theta, rest, solver, xs, rs, num_q, feasible, duals)
     return optimum, optimum
 
 
 @_optimum.def_bwd
-def _optimum_bwd(optimum, cotangent, perturbed, theta, problem, solver, xs, rs, num_q,
+def _optimum_bwd(optimum, cotangent, perturbed, theta, rest, solver, xs, rs, num_q,
                  feasible, duals):
-    del perturbed, xs, rs, solver, feasible, duals
+    del xs, rs, solver, feasible, duals
     iterate, multipliers = optimum
     cotangent = cotangent[0]
-    x_init, p = theta
+    x_init, p, arrays = theta
     xs_bar = jnp.zeros_like(iterate.xs) if cotangent.xs is None else cotangent.xs
     rs_bar = jnp.zeros_like(iterate.rs) if cotangent.rs is None else cotangent.rs
-    # With constraints, those of the problem whose Hessian holds the active constraints stiffly
-    # (`derivative_problem`): the last augmented problem's own, whose penalty may have stayed
-    # small, would let them move (by 2-4 % on the tests' linear problem).
-    if problem.constrained:
-        problem = derivative_problem(problem, multipliers, iterate.xs, iterate.rs, p, num_q)
-    return pull_back(problem, x_init, p, iterate.xs, iterate.rs, iterate.gains.free, xs_bar,
-                     rs_bar, num_q)
+    # Only the problem's arrays that are differentiated: the others held as constants.
+    differentiated = eqx.filter(arrays, perturbed[2])
+    held = eqx.combine(eqx.filter(arrays, perturbed[2], inverse=True), rest)
+
+    def problem_of(differentiated):
+        problem = eqx.combine(differentiated, held)
+        # With constraints, those of the problem whose Hessian holds the active constraints
+        # stiffly (`derivative_problem`): the last augmented problem's own, whose penalty
+        # may have stayed small, would let them move (by 2-4 % on the tests' linear problem).
+        if problem.constrained:
+            problem = derivative_problem(problem, multipliers, iterate.xs, iterate.rs, p,
+                                         num_q)
+        return problem
+
+    return pull_back(problem_of, (x_init, p, differentiated), iterate.xs, iterate.rs,
+                     iterate.gains.free, xs_bar, rs_bar, num_q)

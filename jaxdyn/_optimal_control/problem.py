@@ -19,6 +19,7 @@ import numpy as np
 import optimistix as optx
 
 from .._convention import call
+from .._custom_jvp import jvp_of_perturbed
 from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
 from .._form.articulated import ArticulatedBody
 from .._form.constraints import Constrained
@@ -215,8 +216,10 @@ class ShootingProblem(eqx.Module):
     `constraint_tol`.
 
     Targets and weights that you want to differentiate the optimum with respect to belong in
-    p, with the physical parameters (`jaxdyn.solve_optimal_control` differentiates with respect
-    to q0, u0 and p).
+    p, with the physical parameters: `jaxdyn.solve_optimal_control` differentiates with respect
+    to q0, u0, p and the floating-point arrays the dynamics hold (a tree's masses, inertias and
+    gravity; the places where `HeldPoints` hold a robot), not with respect to the costs' own
+    constants.
 
     **Example** (a cart-pole swung up):
 
@@ -303,13 +306,11 @@ class ShootingProblem(eqx.Module):
 
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
-        if _holds_arrays(self.dynamics):
-            return self._step(t, x, r, p, num_q, accelerations)
         return _step(self, t, x, r, p, num_q)
 
-    def _step(self, t, x, r, p, num_q, driven_accelerations):
+    def _step(self, t, x, r, p, num_q):
         driven = self.dynamics.with_inputs(r)
-        implicit = (driven_accelerations if _residual_is_equations(self.dynamics) else
+        implicit = (_accelerations if _residual_is_equations(self.dynamics) else
                     first_kind_accelerations if _first_kind_residuals(self.dynamics) else None)
 
         def field(t, q, u):
@@ -408,17 +409,9 @@ class ShootingProblem(eqx.Module):
 # Python. The cart-pole from T and V (RK4, 100 nodes, the optimal-control guide): the first
 # jax.grad of the optimal cost 27 → 19 s, the first solve with the variational step 10.8 →
 # 9.5 s (benchmarks/LOG.md, "A step traced once").
-# Only for systems that hold no arrays: a jit traces those, and the accelerations' custom
-# JVP, which takes the system as a non-differentiated argument, would then close over values
-# of the step's trace when a transformation outside it asks for the rule (a hopper with its
-# foot held by `HeldPoints`, whose holds are arrays: "No constant handler" for a tracer).
 @eqx.filter_jit
 def _step(problem, t, x, r, p, num_q):
-    return problem._step(t, x, r, p, num_q, _accelerations)
-
-
-def _holds_arrays(dynamics) -> bool:
-    return bool(jax.tree_util.tree_leaves(eqx.filter(dynamics, eqx.is_array)))
+    return problem._step(t, x, r, p, num_q)
 
 
 def _residual_is_equations(dynamics) -> bool:
@@ -428,39 +421,53 @@ def _residual_is_equations(dynamics) -> bool:
         dynamics.dynamics, (Lagrangian, GibbsAppell, Kane, ArticulatedBody))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+# The implicit accelerations below are custom JVPs of the system's arrays as well as of the
+# state, inputs and parameters: a tree's masses, inertias and gravity, a hold's positions are
+# as differentiable as p (were the system a non-differentiated argument, their derivatives
+# would be dropped silently, and a transformation outside a jit would close over its tracers).
+# Tangents that are symbolic zeros (the arrays, under the expansion's Jacobians in the state)
+# are not propagated: `jvp_of_perturbed`.
+
 def accelerations(dynamics, t, q, u, r, p):
     """u̇(q, u, r) of M u̇ = f + B r, differentiated through the residual: from
     R(q, u, u̇(q, u, r), r) = 0,
 
-        δu̇ = −M⁻¹ (∂R/∂q δq + ∂R/∂u δu + ∂R/∂r δr + ∂R/∂p δp),
+        δu̇ = −M⁻¹ (∂R/∂t δt + ∂R/∂q δq + ∂R/∂u δu + ∂R/∂r δr + ∂R/∂p δp + ∂R/∂s δs),
 
-    one forward-mode pass of the residual (for a tree, the recursive Newton–Euler algorithm)
-    per direction and one factorisation of M, instead of the derivative of the solve itself
-    (for a tree, of the articulated-body algorithm): the route of Carpentier and Mansard's
-    analytical derivatives of rigid-body dynamics (RSS 2018), here by autodiff."""
+    s the system's arrays; one forward-mode pass of the residual (for a tree, the recursive
+    Newton–Euler algorithm) per direction and one factorisation of M, instead of the
+    derivative of the solve itself (for a tree, of the articulated-body algorithm): the route
+    of Carpentier and Mansard's analytical derivatives of rigid-body dynamics (RSS 2018), here
+    by autodiff."""
+    arrays, rest = eqx.partition(dynamics, eqx.is_array)
+    return _driven_accelerations(rest, arrays, t, q, u, r, p)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _driven_accelerations(rest, arrays, t, q, u, r, p):
+    dynamics = eqx.combine(arrays, rest)
     return equations_of_motion(dynamics.with_inputs(r), t, q, u, p)[1]
 
 
-@accelerations.defjvp
-def _accelerations_jvp(dynamics, primals, tangents):
-    t, q, u, r, p = primals
-    _, dq, du, dr, dp = tangents
+def _driven_accelerations_jvp(rest, primals, tangents):
+    arrays, t, q, u, r, p = primals
+    dynamics = eqx.combine(arrays, rest)
     driven = dynamics.with_inputs(r)
     ud = equations_of_motion(driven, t, q, u, p)[1]
     mass_matrix = formed_equations(driven, t, q, u, p)[0]
-    residual = _residual_of if _holds_arrays(dynamics) else _residual
-    _, d_residual = jax.jvp(functools.partial(residual, dynamics, t, ud), (q, u, r, p),
-                            (dq, du, dr, dp))
+    _, d_residual = jvp_of_perturbed(
+        lambda arrays, t, q, u, r, p: _residual(eqx.combine(arrays, rest), t, ud, q, u, r, p),
+        primals, tangents, like=ud)
     return ud, -spd_solve(mass_matrix, d_residual)[0]
 
 
-def _residual_of(dynamics, t, ud, q, u, r, p):
-    return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
+_driven_accelerations.defjvp(_driven_accelerations_jvp, symbolic_zeros=True)
 
 
 # traced once per system and shapes, however often its JVP is asked for
-_residual = eqx.filter_jit(_residual_of)
+@eqx.filter_jit
+def _residual(dynamics, t, ud, q, u, r, p):
+    return dynamics.with_inputs(r).form_residual(t, q, u, ud, p)
 
 
 # Called through `jax.jit`, the stages of a step share one trace of the accelerations and JAX
@@ -475,7 +482,6 @@ def _first_kind_residuals(dynamics) -> bool:
     return isinstance(dynamics, Constrained) and _residual_is_equations(dynamics.dynamics)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def first_kind_accelerations(dynamics, t, q, u, r, p):
     """u̇(q, u, r) of Lagrange's equations of the first kind, M u̇ = f + B r + Cᵀλ,
     C u̇ = c, differentiated through their residuals R₁ = M u̇ − f − B r − Cᵀλ and
@@ -483,29 +489,39 @@ def first_kind_accelerations(dynamics, t, q, u, r, p):
 
         M δu̇ − Cᵀ δλ = −∂R₁ · δx,      C δu̇ = −∂R₂ · δx,
 
-    one forward-mode pass of the residuals (for a tree, the recursive Newton–Euler algorithm
-    and the constraints' kinematics) per direction, solved with the factors of the
-    accelerations' own system (`FirstKind`), instead of the derivative of the solve itself:
-    the route of Carpentier and Mansard's analytical derivatives, here by autodiff."""
+    x the time, state, inputs, parameters and the system's arrays; one forward-mode pass of the
+    residuals (for a tree, the recursive Newton–Euler algorithm and the constraints'
+    kinematics) per direction, solved with the factors of the accelerations' own system
+    (`FirstKind`), instead of the derivative of the solve itself: the route of Carpentier and
+    Mansard's analytical derivatives, here by autodiff."""
+    arrays, rest = eqx.partition(dynamics, eqx.is_array)
+    return _first_kind_accelerations(rest, arrays, t, q, u, r, p)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _first_kind_accelerations(rest, arrays, t, q, u, r, p):
+    dynamics = eqx.combine(arrays, rest)
     return equations_of_motion(dynamics.with_inputs(r), t, q, u, p)[1]
 
 
-@first_kind_accelerations.defjvp
-def _first_kind_accelerations_jvp(dynamics, primals, tangents):
-    t, q, u, r, p = primals
-    _, dq, du, dr, dp = tangents
-    ud, multipliers, kkt = dynamics.with_inputs(r).first_kind(t, q, u, p)
+def _first_kind_accelerations_jvp(rest, primals, tangents):
+    arrays, t, q, u, r, p = primals
+    ud, multipliers, kkt = eqx.combine(arrays, rest).with_inputs(r).first_kind(t, q, u, p)
 
-    def residuals(q, u, r, p):
-        driven = dynamics.with_inputs(r)
+    def residuals(arrays, t, q, u, r, p):
+        driven = eqx.combine(arrays, rest).with_inputs(r)
         # R₂ is affine in u̇ with the coefficient C: Cᵀλ is its VJP in u̇.
         second, transpose = jax.vjp(lambda ud: driven.acceleration_residual(t, q, u, ud, p),
                                     ud)
         return (driven.dynamics.form_residual(t, q, u, ud, p) - transpose(multipliers)[0],
                 second)
 
-    _, (d_first, d_second) = jax.jvp(residuals, (q, u, r, p), (dq, du, dr, dp))
+    like = (ud, jnp.zeros(kkt.jacobian.shape[0], ud.dtype))
+    _, (d_first, d_second) = jvp_of_perturbed(residuals, primals, tangents, like=like)
     return ud, kkt.solve(-d_first, -d_second)[0]
+
+
+_first_kind_accelerations.defjvp(_first_kind_accelerations_jvp, symbolic_zeros=True)
 
 
 def _check_contact_steps(dynamics, discretisation, dt):

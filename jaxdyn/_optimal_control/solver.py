@@ -160,18 +160,19 @@ def expand(problem: ShootingProblem, xs, rs, gaps, p, num_q, *, exact=False) -> 
                      terminal_x=terminal_x, terminal_xx=terminal_xx, gaps=gaps)
 
 
+def step_curvature(problem: ShootingProblem, t, x, r, weights, p, num_q):
+    """∇²(w · F(t, x, r)) of one step, split as (h_xx, h_rr, h_rx)."""
+    def contracted(x, r):
+        return weights @ problem.step(t, x, r, p, num_q)
+
+    (hxx, _), (hrx, hrr) = jax.hessian(contracted, argnums=(0, 1))(x, r)
+    return hxx, hrr, hrx
+
+
 def dynamics_curvature(problem: ShootingProblem, xs, rs, p, num_q):
     """second_order(k, λ) = ∇²(λ · F_k) at node k, split as (h_xx, h_rr, h_rx)."""
     ts = problem.times(xs.dtype)
-
-    def curvature(k, weights):
-        def contracted(x, r):
-            return weights @ problem.step(ts[k], x, r, p, num_q)
-
-        (hxx, _), (hrx, hrr) = jax.hessian(contracted, argnums=(0, 1))(xs[k], rs[k])
-        return hxx, hrr, hrx
-
-    return curvature
+    return lambda k, weights: step_curvature(problem, ts[k], xs[k], rs[k], weights, p, num_q)
 
 
 def gaps_of(problem: ShootingProblem, x0, xs, rs, p, num_q):

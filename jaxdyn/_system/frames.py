@@ -25,6 +25,7 @@ import numpy as np
 
 from .._state import public_function
 from . import spatial
+from .tree_levels import take
 from .subspaces import ancestry, world_subspaces
 from .tree import RigidBodyTree, checked_state as _checked
 
@@ -74,7 +75,7 @@ def frame_pose(tree: RigidBodyTree, frame, q, p=None, *, point=None):
     """
     q, _, _ = _checked(tree, q)
     chain, q_index, _ = _ancestors(tree, _index(tree, frame))
-    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), q[q_index], p)
+    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), take(q, q_index), p)
     return rotations[-1], origins[-1] + rotations[-1] @ _point(point, q.dtype)
 
 
@@ -94,7 +95,7 @@ def frame_velocity(tree: RigidBodyTree, frame, q, u, p=None, *, point=None, axes
     _check_axes(axes)
     q, u, _ = _checked(tree, q, u)
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
-    return _velocity(chain, _point(point, q.dtype), axes, q[q_index], u[u_index], p)
+    return _velocity(chain, _point(point, q.dtype), axes, take(q, q_index), take(u, u_index), p)
 
 
 @public_function(num_static=2)
@@ -108,7 +109,7 @@ def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="w
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
     # Column by column (`world_subspaces`): a direct formula, cheaper than differentiating
     # the velocity recursion.
-    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), q[q_index], p)
+    rotations, origins = chain.link_poses(jnp.zeros((), q.dtype), take(q, q_index), p)
     where = origins[-1] + rotations[-1] @ _point(point, q.dtype)
     omega, velocity = world_subspaces(chain, rotations, origins, where)
     if axes == "local":
@@ -126,7 +127,7 @@ def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=No
     _check_axes(axes)
     q, u, ud = _checked(tree, q, u, ud)
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
-    point, q, u, ud = _point(point, q.dtype), q[q_index], u[u_index], ud[u_index]
+    point, q, u, ud = _point(point, q.dtype), take(q, q_index), take(u, u_index), take(ud, u_index)
     qd = chain.coordinate_rates(jnp.zeros((), q.dtype), q, u, p)
     _, rates = jax.jvp(lambda q, u: _velocity(chain, point, "world", q, u, p), (q, u),
                        (qd, ud))
@@ -308,7 +309,7 @@ class HeldPoints(eqx.Module):
         rows = []
         for frame, point, position in zip(self.frames, self.points, self.positions):
             chain, q_index, _ = _ancestors(self.tree, frame)
-            rotations, origins = chain.link_poses(t, q[q_index], p)
+            rotations, origins = chain.link_poses(t, take(q, q_index), p)
             rows.append(origins[-1] + rotations[-1] @ point.astype(q.dtype) - position)
         return jnp.concatenate(rows)
 
@@ -320,11 +321,11 @@ class HeldPoints(eqx.Module):
         velocities, accelerations = [], []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
-            point, q_chain, u_chain = point.astype(q.dtype), q[q_index], u[u_index]
+            point, q_chain, u_chain = point.astype(q.dtype), take(q, q_index), take(u, u_index)
             qd = chain.coordinate_rates(t, q_chain, u_chain, p)
             velocity, rates = jax.jvp(
                 lambda q, u: _velocity(chain, point, "world", q, u, p), (q_chain, u_chain),
-                (qd, ud[u_index]))
+                (qd, take(ud, u_index)))
             velocities.append(velocity[3:])
             accelerations.append(rates[3:])
         return jnp.concatenate(velocities), jnp.concatenate(accelerations)
@@ -337,7 +338,7 @@ class HeldPoints(eqx.Module):
         jacobians = []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
-            rotations, origins = chain.link_poses(t, q[q_index], p)
+            rotations, origins = chain.link_poses(t, take(q, q_index), p)
             where = origins[-1] + rotations[-1] @ point.astype(q.dtype)
             _, velocity = world_subspaces(chain, rotations, origins, where)
             jacobians.append(jnp.zeros((3, self.tree.num_speeds), q.dtype)

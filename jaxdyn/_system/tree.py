@@ -265,7 +265,8 @@ class RigidBodyTree(AbstractMultibody):
         order = np.concatenate([np.asarray(members) for _, members, _, _ in self._groups()])
         inverse = np.argsort(order)
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *pieces)
-        return jax.tree_util.tree_map(lambda x: x[inverse].astype(dtype), stacked)
+        return jax.tree_util.tree_map(lambda x: tree_levels.take(x, inverse).astype(dtype),
+                                      stacked)
 
     @overload
     def joint_motion(self, q, u: None = None) -> tuple[jax.Array, jax.Array]: ...
@@ -279,7 +280,7 @@ class RigidBodyTree(AbstractMultibody):
         with `u` its joint velocity (ω_J, v_J) (N, 3) each, in its own axes."""
         rotations_t, translations_t = self._placements()
         poses = [joint.placed_transform(rotations_t[members], translations_t[members],
-                                        q[q_index])
+                                        tree_levels.take(q, q_index))
                  for joint, members, q_index, _ in self._groups()]
         rotation, translation = self._by_link(poses, q.dtype)
         if u is None:
@@ -289,7 +290,8 @@ class RigidBodyTree(AbstractMultibody):
     def joint_twists(self, u):
         """(ω_J, v_J) = S u for every link (N, 3) each, in its own axes: linear in u, so that
         its transpose maps the links' spatial forces to forces along the speeds, Σ S_iᵀ f_i."""
-        twists = [joint.twist(u[u_index]) for joint, _, _, u_index in self._groups()]
+        twists = [joint.twist(tree_levels.take(u, u_index))
+                  for joint, _, _, u_index in self._groups()]
         return self._by_link(twists, u.dtype)
 
     def _is_chain(self):

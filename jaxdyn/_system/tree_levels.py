@@ -275,20 +275,36 @@ def backward_split(parents, step, zero, head_links, rest):
 def _children_sum(below, children):
     """Each slot's children's values summed: `children` (W, K) indexes `below` (W', …), with
     W' for no child (a row of zeros)."""
-    return jax.tree_util.tree_map(lambda b: jnp.sum(jnp.concatenate(
-        [b, jnp.zeros_like(b[:1])])[children], axis=1), below)
+    def summed(b):
+        padded = jnp.concatenate([b, jnp.zeros_like(b[:1])])
+        # (a scan's band passes its children as data: then a gather)
+        return jnp.sum(take(padded, children) if isinstance(children, np.ndarray)
+                       else padded[children], axis=1)
+
+    return jax.tree_util.tree_map(summed, below)
 
 
-def _take(x, index):
-    """x[index] along the first axis for a static index (a list): x itself, or a slice, where
-    the index is one, so that the program holds no gather for them."""
-    index = np.asarray(index)
-    if len(index) == x.shape[0] and np.array_equal(index, np.arange(len(index))):
-        return x
-    stride = index[1] - index[0] if len(index) > 1 else 1
-    if stride > 0 and np.array_equal(index, index[0] + stride * np.arange(len(index))):
-        return x[int(index[0]):int(index[-1]) + 1:int(stride)]
-    return x[index]
+def take(x, index):
+    """x[index] along the first axis for a static index (a list or NumPy array of any
+    shape, whose shape replaces the first axis), as x itself, a slice, or a concatenation of
+    slices, one per run of consecutive entries: never a gather, whose derivative in reverse
+    mode is a scatter, which XLA's CPU compiler turns into a loop of its own (the gradient of
+    a tree's optimal control through a scan compiled for minutes with them)."""
+    index = np.asarray(index, dtype=np.int64)
+    flat = index.reshape(-1)
+    n = len(flat)
+    if n == x.shape[0] and np.array_equal(flat, np.arange(n)):
+        out = x
+    elif n > 1 and flat[1] != flat[0] and np.array_equal(
+            flat, flat[0] + (flat[1] - flat[0]) * np.arange(n)) and flat[1] > flat[0]:
+        out = x[int(flat[0]):int(flat[-1]) + 1:int(flat[1] - flat[0])]
+    else:
+        breaks = np.flatnonzero(np.diff(flat) != 1) + 1
+        runs = np.split(flat, breaks) if n else []
+        pieces = [x[int(run[0]):int(run[-1]) + 1] for run in runs]
+        out = (pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces)) if pieces \
+            else x[:0]
+    return out.reshape(index.shape + x.shape[1:])
 
 
 def _forward_by_level(levels, parents, head, step, root, states, rest):
@@ -299,10 +315,10 @@ def _forward_by_level(levels, parents, head, step, root, states, rest):
     tree_map = jax.tree_util.tree_map
     outputs, previous, slot_of = [], None, {}
     for level in levels.members:
-        data = tree_map(lambda x: _take(x, [i - head for i in level]), rest)
+        data = tree_map(lambda x: take(x, [i - head for i in level]), rest)
         parents_of = [parents[i] for i in level]
         if previous is not None:
-            state = tree_map(lambda x: _take(x, [slot_of[j] for j in parents_of]), previous)
+            state = tree_map(lambda x: take(x, [slot_of[j] for j in parents_of]), previous)
             previous, out = jax.vmap(step)(state, data)
         elif len(set(parents_of)) == 1:  # (a floating base's legs: one parent, not copied)
             state = root if parents_of[0] < 0 else states[parents_of[0]]
@@ -313,7 +329,7 @@ def _forward_by_level(levels, parents, head, step, root, states, rest):
             previous, out = jax.vmap(step)(state, data)
         slot_of = {link: s for s, link in enumerate(level)}
         outputs.append(out)
-    return tree_map(lambda *xs: _take(jnp.concatenate(xs), levels.level_order), *outputs)
+    return tree_map(lambda *xs: take(jnp.concatenate(xs), levels.level_order), *outputs)
 
 
 def _backward_by_level(levels, parents, head, step, zero, rest):
@@ -326,7 +342,7 @@ def _backward_by_level(levels, parents, head, step, zero, rest):
     up, below = None, []  # what the level below passed up, and its links
     for d in reversed(range(len(members))):
         level = members[d]
-        data = tree_map(lambda x: _take(x, [i - head for i in level]), rest)
+        data = tree_map(lambda x: take(x, [i - head for i in level]), rest)
         if up is None:  # the deepest level: nothing below
             outputs[d], up_here = jax.vmap(step, in_axes=(None, 0))(zero, data)
         else:
@@ -347,5 +363,5 @@ def _backward_by_level(levels, parents, head, step, zero, rest):
     for parent in sorted({parents[i] for i in members[0]}):
         slots = [s for s, i in enumerate(members[0]) if parents[i] == parent]
         roots.append((len(parents) if parent < 0 else parent,
-                      tree_map(lambda x: jnp.sum(_take(x, slots), axis=0), up)))
-    return tree_map(lambda *xs: _take(jnp.concatenate(xs), levels.level_order), *outputs), roots
+                      tree_map(lambda x: jnp.sum(take(x, slots), axis=0), up)))
+    return tree_map(lambda *xs: take(jnp.concatenate(xs), levels.level_order), *outputs), roots
