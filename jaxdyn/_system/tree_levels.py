@@ -288,15 +288,15 @@ def take(x, index):
     """x[index] along the first axis for a static index (a list or NumPy array of any
     shape, whose shape replaces the first axis), as x itself, a slice, or a concatenation of
     slices, one per run of consecutive entries: never a gather, whose derivative in reverse
-    mode is a scatter, which XLA's CPU compiler turns into a loop of its own (the gradient of
-    a tree's optimal control through a scan compiled for minutes with them)."""
+    mode is a scatter, which XLA's CPU compiler turns into a loop of its own (the costates'
+    loop of a two-link tree's optimal control compiled in 16.9 s with them, 10.7 s without)."""
     index = np.asarray(index, dtype=np.int64)
     flat = index.reshape(-1)
     n = len(flat)
     if n == x.shape[0] and np.array_equal(flat, np.arange(n)):
         out = x
-    elif n > 1 and flat[1] != flat[0] and np.array_equal(
-            flat, flat[0] + (flat[1] - flat[0]) * np.arange(n)) and flat[1] > flat[0]:
+    elif n > 1 and flat[1] > flat[0] and np.array_equal(
+            flat, flat[0] + (flat[1] - flat[0]) * np.arange(n)):
         out = x[int(flat[0]):int(flat[-1]) + 1:int(flat[1] - flat[0])]
     else:
         breaks = np.flatnonzero(np.diff(flat) != 1) + 1
