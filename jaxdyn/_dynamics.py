@@ -388,6 +388,19 @@ def formed_equations(dynamics, t, q, u, p):
     return dynamics.form_equations(t, q, u, p)
 
 
+@eqx.filter_jit  # traced once per system and shapes; inlined into every caller's program
+def formed_mass_matrix(dynamics, t, q, u, p):
+    """M of M u̇ = f alone, for the programs that need it beside the equations of motion (the
+    forces that hold events' rows, the condition number of a failure's message): written out
+    in straight-line scalar code where the system's M is (`unrolled`), else as
+    `form_equations` forms it on arrays. The array program of a small system is the larger
+    one (Appell's M as the Hessian of the Gibbs function: 1192 operations for a chain of two
+    rods, against the few dozen of its written-out form), and a hybrid solve holds it at
+    every place its vector field is asked for."""
+    return unrolled(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
+                    max_elements=None if dynamics.mass_matrix_in_straight_line else 0)
+
+
 def _mass_matrix_structure(dynamics, t, q, u, p):
     return structure(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
                      tags=("t", "q", "u", "p"))

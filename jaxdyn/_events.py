@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from ._convention import call, vector
-from ._dynamics import formed_equations
+from ._dynamics import formed_mass_matrix
 from ._linalg import small_solve
 
 #: The directions of a crossing that trigger an event: from positive to negative (a gap
@@ -145,7 +145,7 @@ def constraint_response(dynamics, t, q, u, p, jacobian):
     per unit force) along each row of `jacobian`, M X = Jᵀ, within the velocity constraints
     A u = b of a constrained formulation (their multipliers solved with it: [M Aᵀ; A 0]),
     with M the formulation's own mass matrix in its own speeds."""
-    mass_matrix = formed_equations(dynamics, t, q, u, p)[0]
+    mass_matrix = formed_mass_matrix(dynamics, t, q, u, p)
     _, velocity_constraints = dynamics.state_constraints(t, q, u, p)
     m, k = u.shape[0], jacobian.shape[0]
     if velocity_constraints.shape[0] == 0:

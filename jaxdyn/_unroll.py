@@ -43,6 +43,7 @@ from ._custom_jvp import batch_axis_first
 from ._unroll_rules import (
     _ANALYSIS,
     _BUDGET,
+    _NUMBERING,
     Symbol,
     _eval,
     _Fallback,
@@ -282,6 +283,7 @@ def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = Tr
         raise _Fallback
     remaining = [max_elements]
     budget = _BUDGET.set(remaining)
+    numbering = _NUMBERING.set({})
     analysis = _ANALYSIS.set(True) if not emit else None
     try:
         if not emit:  # only the count is wanted: inputs and traced constants as symbols
@@ -295,6 +297,7 @@ def evaluate(closed: jex.ClosedJaxpr, leaves, max_elements: int, emit: bool = Tr
         return _eval(jaxpr, closed.consts, [split(x) for x in leaves])
     finally:
         _BUDGET.reset(budget)
+        _NUMBERING.reset(numbering)
         if analysis is not None:
             _ANALYSIS.reset(analysis)
 

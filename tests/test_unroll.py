@@ -75,6 +75,41 @@ def test_constant_folding_leaves_only_the_arithmetic_that_depends_on_inputs():
                  rtol=0)
 
 
+def _repeats(jaxpr):
+    """Equations of a jaxpr (its outer level) that repeat an earlier one: the same primitive
+    and parameters on the same operands (up to order, for additions and products)."""
+    seen, repeats = set(), []
+    for eqn in jaxpr.eqns:
+        operands = [("literal", v.val.item()) if isinstance(v, jax.extend.core.Literal)
+                    else id(v) for v in eqn.invars]
+        if eqn.primitive.name in ("add", "add_any", "mul"):
+            operands = sorted(operands, key=repr)
+        key = (eqn.primitive.name, str(sorted(eqn.params.items())), tuple(operands))
+        if key in seen:
+            repeats.append(eqn)
+        seen.add(key)
+    return repeats
+
+
+def test_written_out_code_holds_each_operation_once():
+    """Lagrange's equations of a double pendulum from its T and V repeat the same products in
+    every entry of M and f (the derivatives of T): written out, each operation on the same
+    operands appears once (value numbering), and the accelerations are the closed form's."""
+    dynamics = DOUBLE_PENDULUM.dynamics
+    p = DOUBLE_PENDULUM.params
+    q, u = jnp.array([0.3, -0.8]), jnp.array([1.1, 0.4])
+    fn = lambda q, u: dynamics.form_equations(0.0, q, u, p)  # noqa: E731
+    closed = jax.make_jaxpr(lambda q, u: unrolled(fn, q, u))(q, u)
+    (straight_line,) = [e.params["call_jaxpr"] for e in closed.jaxpr.eqns
+                        if e.primitive.name == "custom_jvp_call"]
+    assert len(straight_line.eqns) > 50
+    assert not _repeats(straight_line.jaxpr)
+    mass_matrix, forcing = jax.jit(lambda q, u: unrolled(fn, q, u))(q, u)
+    assert_close(mass_matrix, DOUBLE_PENDULUM.mass_matrix(np.asarray(q), p), rtol=1e-14)
+    assert_close(jnp.linalg.solve(mass_matrix, forcing),
+                 DOUBLE_PENDULUM.accelerations(np.asarray(q), np.asarray(u), p), rtol=1e-12)
+
+
 def test_programs_over_budget_run_as_written():
     fn = lambda x: jnp.sin(x) @ jnp.cos(x)  # noqa: E731
     x = jnp.ones(50)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._chunking import chunked_vmap
-from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
+from .._dynamics import AbstractDynamics, equations_of_motion, formed_mass_matrix
 from .._errors import error_if
 from .._solution import RESULTS
 
@@ -106,7 +106,7 @@ def mass_matrix_condition(dynamics, p, t, q, u):
     M is formed in the program and its eigenvalues found on the host (NumPy): only a failed
     solve asks for them, and an eigensolver in the program would cost every solve its
     compilation (and the first one in a process LAPACK's set-up, ~0.1 s)."""
-    mass_matrix = jax.lax.stop_gradient(formed_equations(dynamics, t, q, u, p)[0])
+    mass_matrix = jax.lax.stop_gradient(formed_mass_matrix(dynamics, t, q, u, p))
     return jax.pure_callback(_host_condition, jax.ShapeDtypeStruct((), mass_matrix.dtype),
                              mass_matrix, vmap_method="expand_dims")
 

@@ -20,7 +20,7 @@ import optimistix as optx
 
 from .._convention import call
 from .._custom_jvp import jvp_of_perturbed
-from .._dynamics import AbstractDynamics, equations_of_motion, formed_equations
+from .._dynamics import AbstractDynamics, equations_of_motion, formed_mass_matrix
 from .._form.articulated import ArticulatedBody
 from .._form.constraints import Constrained
 from .._form.contact import Contact
@@ -454,7 +454,7 @@ def _driven_accelerations_jvp(rest, primals, tangents):
     dynamics = eqx.combine(arrays, rest)
     driven = dynamics.with_inputs(r)
     ud = equations_of_motion(driven, t, q, u, p)[1]
-    mass_matrix = formed_equations(driven, t, q, u, p)[0]
+    mass_matrix = formed_mass_matrix(driven, t, q, u, p)
     _, d_residual = jvp_of_perturbed(
         lambda arrays, t, q, u, r, p: _residual(eqx.combine(arrays, rest), t, ud, q, u, r, p),
         primals, tangents, like=ud)
