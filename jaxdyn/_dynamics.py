@@ -395,8 +395,8 @@ def formed_mass_matrix(dynamics, t, q, u, p):
     in straight-line scalar code where the system's M is (`unrolled`), else as
     `form_equations` forms it on arrays. The array program of a small system is the larger
     one (Appell's M as the Hessian of the Gibbs function: 1192 operations for a chain of two
-    rods, against the few dozen of its written-out form), and a hybrid solve holds it at
-    every place its vector field is asked for."""
+    rods, where the written-out form folds the constants and emits each product once), and a
+    hybrid solve holds it at every place its vector field is asked for."""
     return unrolled(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
                     max_elements=None if dynamics.mass_matrix_in_straight_line else 0)
 
