@@ -153,18 +153,23 @@ class _Hybrid(eqx.Module):
         parts = jnp.split(forces, np.cumsum(sizes)[:-1])
         return [None if r is None else f for r, f in zip(rows, parts)]
 
-    def values(self, dynamics, t, q, u, p, factorisation, resting, references):
-        """The guards, with the multiplier λ_i in place of each guard held at rest."""
+    def values(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
+        """The guards, with the multiplier λ_i in place of each guard held at rest. `held`:
+        the held motion (q̇, u̇, λ) at this state where the caller has it already."""
         rows = self.rows(dynamics, t, q, u, p, resting, references)
         if rows is None:
             return _guards(self.events, dynamics, t, q, u, p)
-        # the equations are formed only while some guard rests (a real branch unless vmapped)
-        size = sum(r[3].shape[0] for r in rows if r is not None)
-        forces = jax.lax.cond(
-            jnp.any(resting),
-            lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting,
-                                       references)[2],
-            lambda: jnp.zeros((size,), u.dtype))
+        if held is not None:
+            forces = held[2]
+        else:
+            # the equations are formed only while some guard rests (a real branch unless
+            # vmapped)
+            size = sum(r[3].shape[0] for r in rows if r is not None)
+            forces = jax.lax.cond(
+                jnp.any(resting),
+                lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                           references)[2],
+                lambda: jnp.zeros((size,), u.dtype))
         return jnp.concatenate([
             e.guards(dynamics, t, q, u, p) if f is None else
             e.held_values(dynamics, t, q, u, p, f, r, ref)
@@ -193,11 +198,13 @@ class _Hybrid(eqx.Module):
                                                      resting, references)
         return layout.join(rates, accelerations)
 
-    def rates(self, dynamics, t, q, u, p, factorisation, resting, references):
+    def rates(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
         """ġ of the guards (as they are, not their multipliers) along the motion at (t, q, u):
-        one JVP along (1, q̇, u̇)."""
-        rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
-                                                     resting, references)
+        one JVP along (1, q̇, u̇). `held`: the held motion there, where the caller has it."""
+        if held is None:
+            held = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                      references)
+        rates, accelerations, _ = held
         rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
         return jax.jvp(lambda t, q, u: _guards(self.events, dynamics, t, q, u, p),
                        (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
@@ -277,12 +284,14 @@ class _Watch:
         self.towards = jnp.asarray(np.where(self.rising, -1.0, 1.0), dtype)  # (falling taken as +)
         self.event = self._crossing_event(dtype)
 
-    def values(self, t, y, args, sided=False):
+    def values(self, t, y, args, sided=False, held=None):
         """The guards g (K,) at (t, y), as the segment that starts at t_start sees them: with
-        `sided`, those that just fired are put on the side the motion leaves them towards."""
+        `sided`, those that just fired are put on the side the motion leaves them towards.
+        `held`: the held motion at (t, y), where the caller has it."""
         dynamics, p, factorisation, _, (t_start, leaving, resting, references, _) = args
         q, u = self.layout.split(y)
-        g = self.hybrid.values(dynamics, t, q, u, p, factorisation, resting, references)
+        g = self.hybrid.values(dynamics, t, q, u, p, factorisation, resting, references,
+                               held)
         at_start = (t == t_start) & (leaving == 0)
         # A guard at zero when a segment starts that did not just fire (a ball released on
         # the floor) counts as just before its crossing, so that it cannot be passed unseen.
@@ -329,10 +338,10 @@ class _Watch:
         just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
         return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
 
-    def fired(self, mask, t, y, args):
+    def fired(self, mask, t, y, args, held=None):
         """(K,) the guards whose crossing ended the segment, from the event's mask: in a
-        one-way group, the least of its guards."""
-        g = self.values(t, y, args)
+        one-way group, the least of its guards. `held`: the held motion at (t, y)."""
+        g = self.values(t, y, args, held=held)
         armed = args[-1][-1]
         fired = jnp.zeros((self.total,), bool)
         for (index, sign), hit in zip(self.groups, mask[:len(self.groups)]):
@@ -417,11 +426,18 @@ class _Segments:
         (requested_ys, last_y) = solution.ys
         t_end = solution.ts[1][0]
         y_end = last_y[0]
-        fired = self.watch.fired(solution.event_mask, t_end, y_end, segment_args) & ran
+        # The held motion where the segment ends, formed once for the guards that fired and
+        # for their rates before the jump (each use would otherwise write it into the program).
+        dynamics, p, factorisation, layout = self.args
+        q_end, u_end = layout.split(y_end)
+        held = self.watch.hybrid.accelerations(dynamics, t_end, q_end, u_end, p, factorisation,
+                                               resting, references)
+        fired = self.watch.fired(solution.event_mask, t_end, y_end, segment_args, held) & ran
         happened = jnp.any(fired)
         saved = _keep_covered(saved, requested_ys, self.requested.ts, t_from, t_end, index,
                               ran)
-        before, after = self.jump(t_end, y_end, fired, happened, resting, references, index)
+        before, after = self.jump(t_end, y_end, fired, happened, resting, references, index,
+                                  held)
         q_plus, u_plus, _, resting_plus, _, terminal = after
         y_next = self.watch.layout.join(q_plus, u_plus)
         references_next, leaving_next = self.restart(t_end, q_plus, u_plus, fired, resting,
@@ -460,18 +476,19 @@ class _Segments:
             max_steps=self.max_steps, event=self.watch.event, throw=False)
         return t_from, segment_args, solution
 
-    def jump(self, t_end, y_end, fired, happened, resting, references, index):
+    def jump(self, t_end, y_end, fired, happened, resting, references, index, held):
         """The event that ended a segment: the state (q⁻, u⁻) just before it, the guard that
         fired and all guards' rates ġ⁻ there; then the jump (q⁺, u⁺) = Δ(q⁻, u⁻) of the event
         that guard belongs to (one event object fires at a time), its impulses Λ, the guards
         resting after it, whether it applies and whether the event stops the motion. No jump
-        applies without an event, at a stop, or past the budget: the state stays."""
+        applies without an event, at a stop, or past the budget: the state stays. `held`:
+        the held motion (q̇, u̇, λ) at the segment's end, which gives ġ⁻."""
         dynamics, p, factorisation, layout = self.args
         q, u = layout.split(y_end)
         which = jnp.argmax(fired)
         fired_owner = self.watch.owner[which]
         guard_rates = self.watch.hybrid.rates(dynamics, t_end, q, u, p, factorisation,
-                                              resting, references)
+                                              resting, references, held)
         events = self.watch.hybrid.events
         terminal = jnp.asarray([e.terminal for e in events])[fired_owner]
         q_plus, u_plus, impulses, resting_plus = jax.lax.switch(
