@@ -34,7 +34,8 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
     program with the checks run, to raise its message. Under a trace, the checks stay inside.
 
     The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
-    by identity, modules and numbers by value) and the shapes and dtypes of their arrays.
+    by identity, modules and numbers by value), the shapes and dtypes of their arrays and
+    JAX's `jax_disable_most_optimizations`.
     Arguments with an unhashable non-array leaf take `eqx.filter_jit`'s own path. Under an
     outer trace (`jax.jit`, `vmap`, `grad`) both are the same inlined call.
     """
@@ -71,7 +72,10 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
         # Typed, so that equal values of different types (1, 1.0, True) stay apart.
         static = tuple((type(x), x) for x, k in zip(leaves, kinds) if k is _STATIC)
         try:
-            key = (treedef, static, tuple((x.shape, x.dtype) for x in arrays))
+            # (with JAX's switch for compile time over run time, under which jaxdyn also
+            # traces other forms of some programs: `jaxdyn._integrate.simulate._stepper`)
+            key = (treedef, static, tuple((x.shape, x.dtype) for x in arrays),
+                   jax.config.read("jax_disable_most_optimizations"))
             entry = cache.get(key)
         except TypeError:  # an unhashable option
             return fallback(*args)

@@ -375,15 +375,17 @@ def _save_at(save, layout, ts, t0, t1, dense, invalid):
 
 def _stepper(solver, dynamics, size, forward, resting_field):
     """The solver as it steps: an explicit Runge–Kutta method's stages written out for small
-    equations differentiated forward (`UnrolledStages`), the step projected onto the
-    constraints where the system has a projection (`Projected`)."""
+    equations differentiated forward (`UnrolledStages`) unless XLA is asked to compile fast
+    (`jax_disable_most_optimizations`), the step projected onto the constraints where the
+    system has a projection (`Projected`)."""
     # Events whose contacts can rest put the held-force solve into the vector field, and a
     # hybrid solve also evaluates the field in its root find, its guards' rates and its
     # saves: written out, the stages multiply that program (a particle under rigid contact
     # with friction, Dopri8: 12 → 6 s of XLA, run time 1.3 → 1.1 ms as a loop).
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
             and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward
-            and not resting_field):
+            and not resting_field
+            and not jax.config.read("jax_disable_most_optimizations")):
         # The same steps, without a loop over the stages (2–3× faster on small systems).
         # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
         # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's
@@ -393,6 +395,9 @@ def _stepper(solver, dynamics, size, forward, resting_field):
         # and 23.8 s as a loop; a later fit took 0.89 and 1.28 s). Forward sensitivities
         # (`forward`) keep them written out, primal and sensitivity equations alike: as a
         # loop, the double pendulum's gradient compiled 2–3× faster but ran 4× slower.
+        # Nor where the user has asked XLA for compile time over run time
+        # (`jax_disable_most_optimizations`): written out, the double pendulum's solve
+        # (Dopri8) compiled in 1.15-1.2 s of XLA there, as a loop in 0.45-0.57 s.
         solver = UnrolledStages(solver)
     if dynamics.state_projection() is not None:
         solver = Projected(solver)
