@@ -58,7 +58,15 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
 
         return on_host
 
-    fallback = eqx.filter_jit(fn)
+    def under_setting(fast_compile, *args):  # (the switch a static argument, for the cache)
+        return fn(*args)
+
+    under_setting.__name__ = under_setting.__qualname__ = getattr(fn, "__name__", "fn")
+    by_setting = eqx.filter_jit(under_setting)
+
+    def fallback(*args):
+        return by_setting(jax.config.read("jax_disable_most_optimizations"), *args)
+
     cache: dict = {}
 
     @functools.wraps(fn)
