@@ -338,7 +338,7 @@ class _Watch:
         just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
         return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
 
-    def fired(self, mask, t, y, args, held=None):
+    def fired(self, mask, t, y, args, held):
         """(K,) the guards whose crossing ended the segment, from the event's mask: in a
         one-way group, the least of its guards. `held`: the held motion at (t, y)."""
         g = self.values(t, y, args, held=held)
