@@ -62,33 +62,18 @@ def _rule(fn, sensitivity_solve, primals, tangents):
     active = [i for i, (x, dx) in enumerate(zip(leaves, tangent_leaves))
               if eqx.is_inexact_array(x) and not isinstance(dx, SymbolicZero)]
 
-    def outputs(flat):  # the solve as a function of the active inputs, ints apart as aux
-        filled = list(leaves)
-        for i, x in zip(active, unravel(flat)):
-            filled[i] = x
-        out = fn(jax.tree_util.tree_unflatten(treedef, filled))
-        inexact, other = eqx.partition(out, eqx.is_inexact_array)
-        return inexact, other
-
     flat, unravel = ravel_pytree([leaves[i] for i in active])
     if flat.size == 0:
-        inexact, other = outputs(flat)
-        out = eqx.combine(inexact, other)
+        out = fn(dynamic)
         return batch_axis_first((out, _tangents_like(out, None)))
-    basis = jnp.eye(flat.size, dtype=flat.dtype)
-    solved = None
-    if sensitivity_solve is not None:
-        leaf_basis = [None] * len(leaves)
-        for i, directions in zip(active, jax.vmap(unravel)(basis)):
-            leaf_basis[i] = directions
-        solved = sensitivity_solve(dynamic, leaf_basis)
+    # One direction per differentiated entry: the identity, split leaf by leaf.
+    leaf_basis = [None] * len(leaves)
+    for i, directions in zip(active, jax.vmap(unravel)(jnp.eye(flat.size, dtype=flat.dtype))):
+        leaf_basis[i] = directions
+    solved = None if sensitivity_solve is None else sensitivity_solve(dynamic, leaf_basis)
     if solved is None:  # forward mode through the whole solve, one tangent per entry
-        inexact, sensitivities, other = jax.vmap(
-            lambda v: jax.jvp(outputs, (flat,), (v,), has_aux=True), out_axes=(None, 0, None)
-        )(basis)
-        out = eqx.combine(inexact, other)
-    else:
-        out, sensitivities = solved
+        solved = forward_tangents(fn, dynamic, tangent_tree(dynamic, leaf_basis), flat.size)
+    out, sensitivities = solved
     direction = ravel_pytree([tangent_leaves[i] for i in active])[0]
     # ẏ = S ẋ: linear in ẋ, so that reverse mode transposes it to x̄ = Sᵀ ȳ.
     applied = jax.tree_util.tree_map(lambda s: jnp.tensordot(direction, s, axes=1),
@@ -97,6 +82,45 @@ def _rule(fn, sensitivity_solve, primals, tangents):
 
 
 _call.defjvp(_rule, symbolic_zeros=True)
+
+
+def forward_tangents(fn, primals, tangents, k):
+    """(fn(primals), its tangents) along k directions at once, by forward mode: `tangents`
+    has the structure of `eqx.filter(primals, eqx.is_inexact_array)`, with the k tangents of
+    each inexact array along a leading axis, or None where it is not perturbed (held fixed,
+    not differentiated). The result's tangents are those of `fn`'s inexact arrays
+    (`eqx.filter(fn(primals), eqx.is_inexact_array)`, each with the leading axis k): one JVP
+    vectorised over the k directions, the primal computed once."""
+    leaves, treedef = jax.tree_util.tree_flatten(primals)
+    directions = treedef.flatten_up_to(tangents)
+    active = [i for i, (x, d) in enumerate(zip(leaves, directions))
+              if d is not None and eqx.is_inexact_array(x)]
+
+    def outputs(*chosen):
+        filled = list(leaves)
+        for i, x in zip(active, chosen):
+            filled[i] = x
+        return eqx.partition(fn(jax.tree_util.tree_unflatten(treedef, filled)),
+                             eqx.is_inexact_array)
+
+    if not active:
+        out, rest = outputs()
+        return eqx.combine(out, rest), jax.tree_util.tree_map(
+            lambda x: jnp.zeros((k, *x.shape), x.dtype), out)
+    out, derivative, rest = jax.vmap(
+        lambda *v: jax.jvp(outputs, tuple(leaves[i] for i in active), v, has_aux=True),
+        out_axes=(None, 0, None))(*(directions[i] for i in active))
+    return eqx.combine(out, rest), derivative
+
+
+def tangent_tree(part, leaf_basis):
+    """The tangents of `part`'s inexact arrays as `forward_tangents` takes them, from
+    `leaf_basis`: the k directions of each of its array leaves, None where not
+    differentiated."""
+    arrays = eqx.filter(part, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    return jax.tree_util.tree_unflatten(
+        treedef, [b if eqx.is_inexact_array(x) else None for x, b in zip(leaves, leaf_basis)])
 
 
 def _tangents_like(out, applied):

@@ -268,16 +268,19 @@ def _scipy_wall(e, theta0, l, t_end):
         t += 1e-14  # leave the wall (the event is located at θ = 0)
 
 
-def test_gradient_through_impacts_against_scipy_finite_differences():
-    """d(θ, θ̇)(t_end)/d(e, θ₀, l) after two impacts, by `jax.jacrev` (reverse mode through
-    the restarted solve) against central differences of SciPy's event-located solve."""
+@pytest.mark.parametrize("adjoint", [diffrax.RecursiveCheckpointAdjoint(), None],
+                         ids=["reverse mode through the solve", "sensitivities and saltation"])
+def test_gradient_through_impacts_against_scipy_finite_differences(adjoint):
+    """d(θ, θ̇)(t_end)/d(e, θ₀, l) after two impacts, by `jax.jacrev`, against central
+    differences of SciPy's event-located solve: reverse mode through the restarted solve,
+    and the default forward sensitivities (the sensitivity equations along each segment, the
+    saltation across each impact)."""
     t_end = 2.6
 
     def final(x):
         e, theta0, l = x
         sol = jaxdyn.simulate(PENDULUM, jnp.stack([theta0]), jnp.zeros(1), {"l": l, "e": e},
-                              t1=t_end, events=[WALL], max_events=4,
-                              adjoint=diffrax.RecursiveCheckpointAdjoint(), **TOL)
+                              t1=t_end, events=[WALL], max_events=4, adjoint=adjoint, **TOL)
         return jnp.concatenate([sol.q[-1], sol.u[-1]]), sol.events.count
 
     x = np.array([0.7, -2.0, 0.9])

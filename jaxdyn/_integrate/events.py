@@ -4,12 +4,19 @@ restarted after its jump, in a loop of a fixed number of segments (so that `jax.
 
 Each segment is one `diffrax.diffeqsolve` from the last event to t1 that stops at the first
 zero crossing of a guard, located by Newton's method on the step's dense interpolant
-(`diffrax.Event`). Its derivative is that of the located crossing: the event time by the
-implicit function theorem on g(t*, y(t*)) = 0, then the jump's Jacobian, which together give
-the saltation matrix of the event (Aizerman and Gantmacher 1958) for the discrete solve.
+(`diffrax.Event`). Its derivative, differentiated forward, is carried segment by segment:
+along the flow by the sensitivity equations (only the vector field is differentiated, not the
+solver's loop), then across the event by the implicit function theorem on the crossing
+c(t*, y(t*)) = 0 for the event's time and forward mode through the jump, which together apply
+the saltation matrix of the event (Aizerman and Gantmacher 1958). Where forward
+sensitivities do not apply (an implicit solver, derivatives with respect to the times or
+tolerances), or in reverse mode through checkpoints, the discrete solve is differentiated
+as it is.
 """
 
+import copy
 import dataclasses
+import functools
 from typing import Any
 
 import diffrax
@@ -17,18 +24,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .._dynamics import equations_of_motion
-from .._events import DIRECTIONS, AbstractEvent, hold
+from .._sensitivities import forward_tangents
 from .._solution import RESULTS
+from .guards import Hybrid, Segment, Watch, can_rest, guard_counts, segment_field
+from .solve import SensitivityEquations
 
 #: Default budget of events per solve (`simulate(..., max_events=...)`).
 MAX_EVENTS = 64
-#: A guard within this of zero at the start of a segment is taken to be just before its
-#: crossing (a contact closed at the start is met at once rather than passed through).
-AT_ZERO = 1e-9
 
 
 class EventRecord(eqx.Module):
@@ -78,285 +82,72 @@ class HybridSolution(eqx.Module):
     events: EventRecord
 
 
-def check_events(events, max_events) -> tuple[AbstractEvent, ...]:
-    """Trace-time check of `simulate`'s `events` and `max_events`."""
-    if isinstance(events, AbstractEvent):
-        events = (events,)
-    events = tuple(events)
-    for event in events:
-        if not isinstance(event, AbstractEvent):
-            raise ValueError("events must be jaxdyn events (jaxdyn.Event, "
-                             f"jaxdyn.UnilateralContact), got {type(event).__name__}.")
-    if not isinstance(max_events, int) or max_events < 1:
-        raise ValueError(f"max_events must be a positive int, got {max_events!r}.")
-    return events
-
-
-def _guard_counts(events, dynamics, t, q, u, p):
-    return [jax.eval_shape(lambda e=e: e.guards(dynamics, t, q, u, p)).shape[0]
-            for e in events]
-
-
-def can_rest(events, dynamics, t, q, u, p) -> bool:
-    """Whether some guard of `events` can come to rest (its event has held rows): the vector
-    field then carries the held-force solve (trace time)."""
-    counts = _guard_counts(events, dynamics, t, q, u, p)
-    hybrid = _Hybrid(tuple(events), tuple(counts))
-    resting = jnp.zeros((sum(counts),), bool)
-    references = hybrid.references(dynamics, t, q, u, p, resting)
-    return jax.eval_shape(lambda: hybrid.rows(dynamics, t, q, u, p, resting,
-                                              references)) is not None
-
-
-def _guards(events, dynamics, t, q, u, p):
-    return jnp.concatenate([e.guards(dynamics, t, q, u, p) for e in events])
-
-
-class _Hybrid(eqx.Module):
-    """The events of a solve and how their guards are laid out: the vector field with the
-    resting contacts held, and the guards with their multipliers in place of those held."""
-
-    events: tuple
-    counts: tuple[int, ...] = eqx.field(static=True)
-
-    def split(self, values):
-        """`values` over all guards, as one array per event."""
-        return jnp.split(values, np.cumsum(self.counts)[:-1])
-
-    def rows(self, dynamics, t, q, u, p, resting, references):
-        """Each event's held rows (E, W, b, active) (None for an event that cannot rest), or
-        None if no event can rest."""
-        return _rows(self, dynamics, t, q, u, p, resting, references)
-
-    def accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
-        """(q̇, u̇, λ): the equations of motion with the rows of the `resting` guards held and
-        their multipliers λ (zero for the others; None if no event can rest)."""
-        return _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references)
-
-    def _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
-        rates, free, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
-        rows = self.rows(dynamics, t, q, u, p, resting, references)
-        if rows is None:
-            return rates, free, None
-        rows = [r for r in rows if r is not None]
-        rows = tuple(jnp.concatenate(parts) for parts in zip(*rows))
-        active = rows[3]
-        accelerations, forces = jax.lax.cond(
-            jnp.any(active), lambda: hold(dynamics, t, q, u, p, free, rows),
-            lambda: (free, jnp.zeros(active.shape, u.dtype)))
-        return rates, accelerations, forces
-
-    def _per_event(self, rows, forces):
-        """The multipliers λ of all held rows, as one array per event (None where it has no
-        rows)."""
-        sizes = [0 if r is None else r[3].shape[0] for r in rows]
-        parts = jnp.split(forces, np.cumsum(sizes)[:-1])
-        return [None if r is None else f for r, f in zip(rows, parts)]
-
-    def values(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
-        """The guards, with the multiplier λ_i in place of each guard held at rest. `held`:
-        the held motion (q̇, u̇, λ) at this state where the caller has it already."""
-        rows = self.rows(dynamics, t, q, u, p, resting, references)
-        if rows is None:
-            return _guards(self.events, dynamics, t, q, u, p)
-        if held is not None:
-            forces = held[2]
-        else:
-            # the equations are formed only while some guard rests (a real branch unless
-            # vmapped)
-            size = sum(r[3].shape[0] for r in rows if r is not None)
-            forces = jax.lax.cond(
-                jnp.any(resting),
-                lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting,
-                                           references)[2],
-                lambda: jnp.zeros((size,), u.dtype))
-        return jnp.concatenate([
-            e.guards(dynamics, t, q, u, p) if f is None else
-            e.held_values(dynamics, t, q, u, p, f, r, ref)
-            for e, f, r, ref in zip(self.events, self._per_event(rows, forces),
-                                    self.split(resting), references)])
-
-    def held_forces(self, dynamics, t, q, u, p, factorisation, resting, references):
-        """The force each guard carries at rest (zero for the others), shape (K,)."""
-        rows = self.rows(dynamics, t, q, u, p, resting, references)
-        forces = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
-                                    references)[2]
-        return jnp.concatenate([
-            jnp.zeros((c,), u.dtype) if f is None else e.held_forces(f, r, p)
-            for e, c, f, r in zip(self.events, self.counts, self._per_event(rows, forces),
-                                  self.split(resting))])
-
-    def references(self, dynamics, t, q, u, p, resting):
-        """What each event remembers of a segment that starts at (t, q, u)."""
-        return tuple(e.reference(dynamics, t, q, u, p, r)
-                     for e, r in zip(self.events, self.split(resting)))
-
-    def field(self, t, y, args):
-        dynamics, p, factorisation, layout, (_, _, resting, references, _) = args
-        q, u = layout.split(y)
-        rates, accelerations, _ = self.accelerations(dynamics, t, q, u, p, factorisation,
-                                                     resting, references)
-        return layout.join(rates, accelerations)
-
-    def rates(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
-        """ġ of the guards (as they are, not their multipliers) along the motion at (t, q, u):
-        one JVP along (1, q̇, u̇). `held`: the held motion there, where the caller has it."""
-        if held is None:
-            held = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
-                                      references)
-        rates, accelerations, _ = held
-        rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
-        return jax.jvp(lambda t, q, u: _guards(self.events, dynamics, t, q, u, p),
-                       (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
-
-
-# The guards' rows and the held accelerations are asked for at every stage of a step, by the
-# guards' rates and by the jump: each is traced once per solve (a nested jit, inlined by XLA)
-# rather than once per use. A chain of two rods striking a floor traced its guards' rows 48
-# times and spent 2.5 of its 8 s of tracing on them.
-@eqx.filter_jit
-def _rows(hybrid, dynamics, t, q, u, p, resting, references):
-    rows = [e.held_rows(dynamics, t, q, u, p, r, ref)
-            for e, r, ref in zip(hybrid.events, hybrid.split(resting), references)]
-    return None if all(r is None for r in rows) else rows
-
-
-@eqx.filter_jit
-def _accelerations(hybrid, dynamics, t, q, u, p, factorisation, resting, references):
-    return hybrid._accelerations(dynamics, t, q, u, p, factorisation, resting, references)
-
-
 def hybrid_solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
-                 events, max_events):
+                 events, max_events) -> "HybridSolution":
     """Segments of `diffrax.diffeqsolve` between events, at most `max_events` events.
 
     `args` is the vector field's (dynamics, p, factorisation, layout); `saveat` is
     `simulate`'s (the requested states, then the last state). Returns a `HybridSolution`:
     the scan over max_events + 1 segments (`_Segments.segment`), the last one to reach t1
     or to meet the event past the budget."""
+    segments, t0, y0 = _segments(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint,
+                                 max_steps, events, max_events)
     dynamics, p, _, layout = args
     q0, u0 = layout.split(y0)
-    # Strongly typed times (a batch passes weakly typed ones): the event's root find is traced
-    # once with the segment's times and must be called with the same types.
-    t0, t1 = (jnp.asarray(t, y0.dtype) for t in (t0, t1))
-    counts = _guard_counts(events, dynamics, t0, q0, u0, p)
-    hybrid = _Hybrid(events, tuple(counts))
-    watch = _Watch(hybrid, layout, y0.dtype)
-    no_guards = jnp.zeros((watch.total,), bool)
-    references0 = hybrid.references(dynamics, t0, q0, u0, p, no_guards)
-    segments = _Segments(
-        args=args, watch=watch, solver=solver, t1=t1, dt0=dt0, controller=controller,
-        adjoint=adjoint, max_steps=max_steps, max_events=max_events,
-        requested=saveat.subs[0], rests=can_rest(events, dynamics, t0, q0, u0, p),
-        no_guards=no_guards, dtype=y0.dtype)
+    references0 = segments.watch.hybrid.references(dynamics, t0, q0, u0, p,
+                                                   segments.no_guards)
     carry0 = segments.start(t0, y0, references0)
     carry, records = jax.lax.scan(segments.segment, carry0, jnp.arange(max_events + 1))
     return _hybrid_solution(carry, records, segments.requested.ts, max_events)
 
 
-class _Watch:
-    """The guards of a hybrid solve as its segments watch them for a crossing (built at trace
-    time): which event each guard belongs to, each guard's value as the segment that starts
-    at t_start sees it, which guards can fire from there, the `diffrax.Event` whose zero
-    crossing ends a segment, and which guard that crossing was."""
+def hybrid_tangents(solver, t0, t1, dt0, y0, args, saveat, controller, max_steps, events,
+                    max_events, tangents):
+    """`hybrid_solve`'s arrays and their tangents along k directions: `tangents` are those of
+    (y0, args, events), as `jaxdyn._sensitivities.forward_tangents` takes them. The
+    sensitivity equations carry them along each segment and forward mode across its event
+    (`_Segments.segment_with_tangents`)."""
+    y0_tangents, args_tangents, events_tangents = tangents
+    segments, t0, y0 = _segments(solver, t0, t1, dt0, y0, args, saveat, controller,
+                                 diffrax.ForwardMode(), max_steps, events, max_events)
+    hybrid = segments.watch.hybrid
+    hybrid_tangents = Hybrid(events_tangents, hybrid.counts)
+    segments = dataclasses.replace(segments, tangents=(args_tangents, hybrid_tangents))
+    layout, k = args[3], y0_tangents.shape[0]
 
-    def __init__(self, hybrid, layout, dtype):
-        self.hybrid, self.layout = hybrid, layout
-        counts = hybrid.counts
-        self.total = sum(counts)
-        self.owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
-        self.owner = jnp.asarray(self.owner_list, jnp.int32)
-        self.tiny = jnp.finfo(dtype).tiny
-        directions = [DIRECTIONS[event.direction] for event, c in zip(hybrid.events, counts)
-                      for _ in range(c)]
-        self.falling = np.array([d is False for d in directions])
-        self.rising = np.array([d is True for d in directions])
-        # The guards that cross one way are watched as one function, the least of them (each
-        # taken so that it falls through zero): the first crossing of any is the first zero of
-        # their least, located by one root find, and the field is written into the program once
-        # rather than once per guard. A guard that cannot fire from where its segment starts
-        # (on the far side of zero, or at zero after firing and leaving it that way) enters as
-        # its absolute value, which touches zero where the guard crosses back without falling
-        # through it. Guards that fire both ways are watched one by one.
-        groups = [(np.flatnonzero(self.falling), 1.0), (np.flatnonzero(self.rising), -1.0)]
-        self.groups = [(index, sign) for index, sign in groups if index.size]
-        self.either = [i for i, d in enumerate(directions) if d is None]
-        self.towards = jnp.asarray(np.where(self.rising, -1.0, 1.0), dtype)  # (falling taken as +)
-        self.event = self._crossing_event(dtype)
+    def start(x):
+        t0, y0, args, hybrid = x
+        q0, u0 = layout.split(y0)
+        references0 = hybrid.references(args[0], t0, q0, u0, args[1], segments.no_guards)
+        return segments.with_system(args, hybrid).start(t0, y0, references0)
 
-    def values(self, t, y, args, sided=False, held=None):
-        """The guards g (K,) at (t, y), as the segment that starts at t_start sees them: with
-        `sided`, those that just fired are put on the side the motion leaves them towards.
-        `held`: the held motion at (t, y), where the caller has it."""
-        dynamics, p, factorisation, _, (t_start, leaving, resting, references, _) = args
-        q, u = self.layout.split(y)
-        g = self.hybrid.values(dynamics, t, q, u, p, factorisation, resting, references,
-                               held)
-        at_start = (t == t_start) & (leaving == 0)
-        # A guard at zero when a segment starts that did not just fire (a ball released on
-        # the floor) counts as just before its crossing, so that it cannot be passed unseen.
-        g = jnp.where(at_start & self.falling & (g <= 0) & (g >= -AT_ZERO), self.tiny, g)
-        g = jnp.where(at_start & self.rising & (g >= 0) & (g <= AT_ZERO), -self.tiny, g)
-        if not sided:
-            return g
-        # At a restart the guards that just fired sit at zero: their side is the one the
-        # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
-        # handled is not found again.
-        side = leaving * jnp.maximum(jnp.abs(g), self.tiny)
-        return jnp.where((t == t_start) & (leaving != 0), side, g)
-
-    def _crossing_event(self, dtype):
-        """The `diffrax.Event` that stops a segment at the first zero crossing of a guard: the
-        least of each one-way group, each guard of either direction alone, its crossing
-        located by Newton's method on the step's dense interpolant."""
-
-        def least(index, sign):
-            """The least of the one-way guards `index`, each falling through zero as it fires."""
-            def cond_fn(t, y, args, **kwargs):
-                armed = args[-1][-1]
-                return jnp.min(_watched(index, sign, self.values(t, y, args, sided=True),
-                                        armed))
-            return cond_fn
-
-        def single(index):
-            """Guard `index` alone (it fires either way)."""
-            def cond_fn(t, y, args, **kwargs):
-                return self.values(t, y, args, sided=True)[index]
-            return cond_fn
-
-        root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
-                                  atol=1e-12 if dtype == jnp.float64 else 1e-6)
-        return diffrax.Event([least(index, sign) for index, sign in self.groups]
-                             + [single(i) for i in self.either], root_finder,
-                             [False] * len(self.groups) + [None] * len(self.either))
-
-    def armed(self, t, y, args):
-        """Which guards start a segment where they can fire: on the side they fall from, or
-        at zero just after firing and moving to that side."""
-        leaving = args[-1][1]
-        g = self.values(t, y, args)
-        just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
-        return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
-
-    def fired(self, mask, t, y, args, held):
-        """(K,) the guards whose crossing ended the segment, from the event's mask: in a
-        one-way group, the least of its guards. `held`: the held motion at (t, y)."""
-        g = self.values(t, y, args, held=held)
-        armed = args[-1][-1]
-        fired = jnp.zeros((self.total,), bool)
-        for (index, sign), hit in zip(self.groups, mask[:len(self.groups)]):
-            first = jnp.asarray(index)[jnp.argmin(_watched(index, sign, g, armed))]
-            fired = fired.at[first].set(hit)
-        for i, hit in zip(self.either, mask[len(self.groups):]):
-            fired = fired.at[i].set(hit)
-        return fired
+    state0 = forward_tangents(start, (t0, y0, args, hybrid),
+                              (None, y0_tangents, args_tangents, hybrid_tangents), k)
+    (carry, carry_tangents), (records, record_tangents) = jax.lax.scan(
+        segments.segment_with_tangents, state0, jnp.arange(max_events + 1))
+    record_tangents = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 1, 0), record_tangents)
+    return forward_tangents(
+        lambda x: eqx.filter(_hybrid_solution(x[0], x[1], segments.requested.ts, max_events),
+                             eqx.is_array),
+        (carry, records), (carry_tangents, record_tangents), k)
 
 
-def _watched(index, sign, g, armed):
-    """The guards `index` of one group, each taken so that it falls through zero where it
-    fires (sign g), and as |sign g| where it cannot fire from where its segment starts."""
-    value = sign * g[index]
-    return jnp.where(armed[index], value, jnp.abs(value))
+def _segments(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps, events,
+              max_events):
+    """The `_Segments` of a hybrid solve, and its start (t0, y0)."""
+    dynamics, p, _, layout = args
+    q0, u0 = layout.split(y0)
+    # Strongly typed times (a batch passes weakly typed ones): the event's root find is traced
+    # once with the segment's times and must be called with the same types.
+    t0, t1 = (jnp.asarray(t, y0.dtype) for t in (t0, t1))
+    hybrid = Hybrid(events, tuple(guard_counts(events, dynamics, t0, q0, u0, p)))
+    watch = Watch(hybrid, layout, y0.dtype)
+    segments = _Segments(
+        args=args, watch=watch, solver=solver, t1=t1, dt0=dt0, controller=controller,
+        adjoint=adjoint, max_steps=max_steps, max_events=max_events,
+        requested=saveat.subs[0], rests=can_rest(events, dynamics, t0, q0, u0, p),
+        no_guards=jnp.zeros((watch.total,), bool), dtype=y0.dtype)
+    return segments, t0, y0
 
 
 # (hashed by identity: its bound `observe` is a static part of each segment's diffeqsolve)
@@ -367,7 +158,7 @@ class _Segments:
     it (`segment`, the body of the solve's scan)."""
 
     args: tuple  # the vector field's (dynamics, p, factorisation, layout)
-    watch: _Watch
+    watch: Watch
     solver: diffrax.AbstractSolver
     t1: Array
     dt0: Any  # None or the first step
@@ -379,24 +170,34 @@ class _Segments:
     rests: bool  # whether some guard can come to rest (the normal forces are then saved)
     no_guards: Bool[Array, " K"]
     dtype: np.dtype
+    # the k tangents of the system's args and events, where the solve carries its tangents
+    # (`segment_with_tangents`)
+    tangents: Any = None
+
+    def with_system(self, args, hybrid):
+        """These segments, of the system's `args` and events `hybrid` (those differentiated)."""
+        watch = copy.copy(self.watch)
+        watch.hybrid = hybrid
+        return dataclasses.replace(self, args=args, watch=watch)
 
     def observe(self, t, y, args):
         """The requested quantities, and the normal forces λ of the contacts held at rest."""
         seen = self.requested.fn(t, y, args)
         if not self.rests:
             return seen, None
-        dynamics, p, factorisation, _, (_, _, resting, references, _) = args
+        dynamics, p, factorisation, _, segment = args
         q, u = self.watch.layout.split(y)
-        return seen, self.watch.hybrid.held_forces(dynamics, t, q, u, p, factorisation,
-                                                   resting, references)
+        return seen, segment.hybrid.held_forces(dynamics, t, q, u, p, factorisation,
+                                                segment.resting, segment.references)
 
     def start(self, t0, y0, references0):
         """The scan's carry before the first segment: the solve at (t0, y0), no guard resting
         or just fired, the saves NaN and no steps taken."""
         ts_requested = self.requested.ts
         total = self.watch.total
-        start_args = (*self.args, (t0, jnp.zeros((total,), self.dtype), self.no_guards,
-                                   references0, self.no_guards))
+        start_args = (*self.args, Segment(t0, jnp.zeros((total,), self.dtype),
+                                           self.no_guards, references0, self.no_guards,
+                                           self.watch.hybrid))
         if ts_requested is None:
             saved0 = jax.eval_shape(lambda: self.observe(t0, y0, start_args))
         else:
@@ -415,10 +216,42 @@ class _Segments:
         jump and the restart after it; the event's row of the `EventRecord`. Once the solve is
         done (no event before t1, a stop, a failure, the budget spent) a segment changes
         nothing."""
+        t_from, segment_args, solution = self.flow(*carry[:6])
+        return self.after_flow(carry, index, t_from, segment_args, solution)
+
+    def segment_with_tangents(self, state, index):
+        """`segment` with the k tangents of its carry (the scan's body where the solve
+        carries its tangents): the flow by its sensitivity equations (`_flow_tangents`),
+        the rest (the crossing, the jump, the restart) by forward mode."""
+        carry, carry_tangents = state
+        t_start, y_start, leaving, resting, references, done = carry[:6]
+        d_t_start, d_y_start, d_leaving, _, d_references = carry_tangents[:5]
+        d_args, d_hybrid = self.tangents
+        t_from = jnp.where(done, self.t1, t_start)
+        d_t_from = jnp.where(done, 0.0, d_t_start)
+        segment_args = self.segment_args(t_from, y_start, leaving, resting, references)
+        d_segment = dataclasses.replace(
+            eqx.filter(segment_args[-1], eqx.is_inexact_array), t_start=d_t_from,
+            leaving=d_leaving, references=d_references, hybrid=d_hybrid)
+        d_segment_args = (*d_args, d_segment)
+        solution, d_solution = self._flow_tangents(t_from, d_t_from, y_start, d_y_start,
+                                                   segment_args, d_segment_args)
+
+        def rest(x):
+            carry, t_from, segment_args, solution, args, hybrid = x
+            return self.with_system(args, hybrid).after_flow(carry, index, t_from,
+                                                             segment_args, solution)
+
+        (carry, record), (carry_tangents, record_tangents) = forward_tangents(
+            rest, (carry, t_from, segment_args, solution, self.args, self.watch.hybrid),
+            (carry_tangents, d_t_from, d_segment_args, d_solution, d_args, d_hybrid),
+            d_y_start.shape[0])
+        return (carry, carry_tangents), (record, record_tangents)
+
+    def after_flow(self, carry, index, t_from, segment_args, solution):
+        """The rest of `segment` after its flow: the crossing, the jump, the restart."""
         (t_start, y_start, leaving, resting, references, done, saved, last, result, steps,
          count) = carry
-        t_from, segment_args, solution = self.flow(t_start, y_start, leaving, resting,
-                                                   references, done)
         # (saved as asked: the states and times, the controller's state, the event mask)
         assert solution.ys is not None and solution.ts is not None
         assert solution.event_mask is not None and solution.controller_state is not None
@@ -458,23 +291,104 @@ class _Segments:
         itself, an empty solve, once the solve is done), stopped at the first zero crossing of
         a guard armed at its start. Returns the segment's start, its args and its solution."""
         t_from = jnp.where(done, self.t1, t_start)
-        ts_requested = self.requested.ts
-        if ts_requested is None:
-            sub = diffrax.SubSaveAt(t1=True, fn=self.observe)
-        else:
-            sub = diffrax.SubSaveAt(ts=jnp.clip(ts_requested, t_from, self.t1),
-                                    fn=self.observe)
-        segment_args = (*self.args, (t_from, leaving, resting, references, self.no_guards))
-        segment_args = (*self.args, (t_from, leaving, resting, references,
-                                     self.watch.armed(t_from, y_start, segment_args)))
-        solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(self.watch.hybrid.field), self.solver, t_from, self.t1, self.dt0,
-            y_start, args=segment_args,
-            saveat=diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)],
-                                  controller_state=True),
-            stepsize_controller=self.controller, adjoint=self.adjoint,
-            max_steps=self.max_steps, event=self.watch.event, throw=False)
-        return t_from, segment_args, solution
+        segment_args = self.segment_args(t_from, y_start, leaving, resting, references)
+        return t_from, segment_args, self._solve(
+            (t_from, y_start, segment_args, self._save_times(t_from), self.t1, self.dt0,
+             self.controller))
+
+    def segment_args(self, t_from, y_start, leaving, resting, references):
+        """The args of a segment's flow: the system's, and the segment's (`Segment`)."""
+        segment = Segment(t_from, leaving, resting, references, self.no_guards,
+                           self.watch.hybrid)
+        segment = eqx.tree_at(lambda s: s.armed, segment,
+                              self.watch.armed(t_from, y_start, (*self.args, segment)))
+        return (*self.args, segment)
+
+    def _save_times(self, t_from):
+        """The requested save times, those before the segment's start clipped to it."""
+        ts = self.requested.ts
+        return None if ts is None else jnp.clip(ts, t_from, self.t1)
+
+    def _saveat(self, ts):
+        sub = diffrax.SubSaveAt(t1=True, fn=self.observe) if ts is None else \
+            diffrax.SubSaveAt(ts=ts, fn=self.observe)
+        return diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)], controller_state=True)
+
+    def _solve(self, inputs, field=segment_field, saveat=None, event=None):
+        """The segment's `diffrax.diffeqsolve` of `inputs` (t_from, y_start, args, ts, t1, dt0,
+        the step-size controller)."""
+        t_from, y_start, segment_args, ts, t1, dt0, controller = inputs
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(field), self.solver, t_from, t1, dt0, y_start,
+            args=segment_args, saveat=self._saveat(ts) if saveat is None else saveat,
+            stepsize_controller=controller, adjoint=self.adjoint, max_steps=self.max_steps,
+            event=self.watch.event if event is None else event, throw=False)
+
+    def _flow_tangents(self, t_from, d_t_from, y_start, d_y_start, segment_args,
+                       d_segment_args):
+        """The flow of a segment with its k tangents (`SensitivityEquations`), given those of
+        its start time t₀ (an event's time), its initial state and its args (the system's
+        parameters, the events' coefficients, what the events remember). The sensitivities
+        start at S_k(t₀) = ẏ₀ − f(t₀, y₀) ṫ₀ (the flow is met at fixed times, and starts
+        later by ṫ₀); where a guard's crossing c(t*, y(t*)) = 0 ends the segment, its time
+        moves by
+
+            ṫ* = −(∂c/∂y S_k + ∂c/∂x ẋ_k) / (∂c/∂t + ∂c/∂y f),
+
+        and the state there by S_k + f ṫ*. With the jump's derivative (forward mode through
+        the event's map) and the next segment's start, this maps the sensitivities across
+        the event by its saltation matrix (Aizerman and Gantmacher 1958). The derivative is
+        that of the flow, the located crossing and the jump, which the discrete solve
+        approximates to its tolerance. Returns the solution's arrays and their tangents."""
+        ts = self._save_times(t_from)
+        saveat = self._saveat(ts)
+        controller = SensitivityEquations.controller_of(self.solver, y_start, saveat,
+                                                        self.controller)
+        n, k = y_start.shape[0], d_y_start.shape[0]
+        leaves, treedef = jax.tree_util.tree_flatten(segment_args)
+        directions = treedef.flatten_up_to(d_segment_args)
+        equations = SensitivityEquations(
+            segment_field, n, k, [d for x, d in zip(leaves, directions) if eqx.is_inexact_array(x)])
+        start_rate = segment_field(t_from, y_start, segment_args)
+        s0 = d_y_start - d_t_from[:, None] * start_rate[None]
+        arguments = equations.arguments(segment_args)
+        crossing = self.watch.event
+        event = diffrax.Event(
+            [functools.partial(_of_state, cond, equations) for cond in crossing.cond_fn],
+            crossing.root_finder, crossing.direction)
+        solution = self._solve(
+            (t_from, equations.state(y_start, s0), arguments, ts, self.t1, self.dt0,
+             controller),
+            equations.field, equations.saveat(saveat), event)
+        assert solution.event_mask is not None
+        out, sensitivities = equations.results(solution)
+        # The crossing that ended the segment (none: it reached t1, ∂t* = 0).
+        mask = jnp.stack([jnp.asarray(m) for m in solution.event_mask])
+        t_end, y_end = out.ts[1][0], out.ys[1][0]
+        s_end = sensitivities.ys[1][:, 0]
+
+        def crossing_value(t, y, args):
+            values = jnp.stack([cond(t, y, args) for cond in crossing.cond_fn])
+            return jnp.sum(jnp.where(mask, values, 0.0))
+
+        rate_end = segment_field(t_end, y_end, segment_args)
+        _, along = jax.jvp(lambda t, y: crossing_value(t, y, segment_args), (t_end, y_end),
+                           (jnp.ones_like(t_end), rate_end))
+        _, across = equations.jvps(crossing_value, t_end, y_end, s_end, arguments)
+        fired = jnp.any(mask)
+        moved = jnp.where(fired, -across / jnp.where(fired, along, 1.0), 0.0)  # ∂t*/∂x (k,)
+        sensitivities = eqx.tree_at(
+            lambda s: (s.ts[1], s.ys[1]), sensitivities,
+            (moved[:, None], (s_end + moved[:, None] * rate_end[None])[:, None]))
+        if ts is None:  # the requested quantities are saved at t* too
+            _, observed_rate = jax.jvp(lambda t, y: self.observe(t, y, segment_args),
+                                       (t_end, y_end), (jnp.ones_like(t_end), rate_end))
+            sensitivities = eqx.tree_at(
+                lambda s: s.ys[0], sensitivities, jax.tree_util.tree_map(
+                    lambda s, rate: s + moved.reshape((k,) + (1,) * (s.ndim - 1))
+                    * rate.reshape(s.shape[1:])[None],
+                    sensitivities.ys[0], observed_rate))
+        return out, sensitivities
 
     def jump(self, t_end, y_end, fired, happened, resting, references, index, held):
         """The event that ended a segment: the state (q⁻, u⁻) just before it, the guard that
@@ -530,6 +444,11 @@ class _Segments:
         same = resting_plus == resting
         leaving_next = jnp.where(fired & same, jnp.sign(rates_after), 0.0).astype(self.dtype)
         return references_next, leaving_next
+
+
+def _of_state(cond, equations, t, y, args, **kwargs):
+    """The guard crossing `cond` of the sensitivity solve's state [y; S], read on y."""
+    return cond(t, equations.split(y)[0], args[0], **kwargs)
 
 
 def _keep_covered(saved, requested_ys, ts_requested, t_from, t_end, index, ran):

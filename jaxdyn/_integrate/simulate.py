@@ -40,7 +40,8 @@ from .options import (
     step_budget,
     tolerance_checks,
 )
-from .events import MAX_EVENTS, can_rest, check_events
+from .events import MAX_EVENTS
+from .guards import can_rest, check_events
 from .solve import Layout, Projected, solve, vector_field
 
 
@@ -131,7 +132,10 @@ def simulate(
       with impacts by Newton's law). Each zero crossing of a guard is located to the
       solver's precision by Newton's method on the step's interpolant, the state jumps, and
       the solve restarts from there; `Solution.events` records every event (`EventRecord`).
-      Derivatives pass through the event times (implicit function theorem) and the jumps.
+      Derivatives pass through the event times (implicit function theorem) and the jumps;
+      by forward sensitivities (the default for few entries) they are carried along each
+      segment by the sensitivity equations and mapped across each event by its saltation
+      matrix, which agrees with the discrete solve's derivative to the solver's tolerance.
       Not with `dense=True`.
     - `max_events`: the most events handled (static: the solve is a loop of `max_events` + 1
       segments). The solve stops at the event past it, with `RESULTS.max_events_reached`.

@@ -7,9 +7,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._dynamics import equations_of_motion
-from .._sensitivities import with_sensitivities
+from .._sensitivities import tangent_tree, with_sensitivities
 from .._runge_kutta import UnrolledStages
 from .._wrapped_solver import AbstractForwardingSolver
 from .failures import GuardedAdaptive, solve_arguments
@@ -95,11 +96,36 @@ def solve(solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, max_steps,
         return eqx.filter(solution, eqx.is_array)
 
     def sensitivity_solve(dynamic, basis):
-        return _sensitivity_equations(run, solver, eqx.combine(dynamic, static), basis)
+        inputs = eqx.combine(dynamic, static)
+        if events is None:
+            return _sensitivity_equations(run, solver, inputs, basis)
+        return _hybrid_sensitivities(solver, max_steps, max_events, inputs, dynamic, basis)
 
-    solution = with_sensitivities(arrays_out, dynamic,
-                                  sensitivity_solve if events is None else None)
+    solution = with_sensitivities(arrays_out, dynamic, sensitivity_solve)
     return _times_back(solution, requested, *times) if unit_interval else solution
+
+
+def _hybrid_sensitivities(solver, max_steps, max_events, inputs, dynamic, basis):
+    """A hybrid solve with its forward sensitivities (`jaxdyn._integrate.events`: the
+    sensitivity equations along each segment, mapped across each event), for the k
+    directions of `basis` (per leaf of `dynamic`, the solve's array inputs); None (forward
+    mode through the whole solve instead) where the times, tolerances or save times are
+    differentiated, or the sensitivity equations do not apply."""
+    t0, t1, dt0, y0, args, saveat, controller, events = inputs
+    counts = [len(jax.tree_util.tree_leaves(part)) for part in dynamic]
+    ends = np.cumsum(counts)
+    if any(b is not None for b in basis[:ends[2]] + basis[ends[4]:ends[6]]):
+        return None
+    if SensitivityEquations.controller_of(solver, y0, saveat, controller) is None:
+        return None
+    k = next(b for b in basis if b is not None).shape[0]
+    y0_basis = basis[ends[2]]
+    tangents = (jnp.zeros((k, *y0.shape), y0.dtype) if y0_basis is None else y0_basis,
+                tangent_tree(args, basis[ends[3]:ends[4]]),
+                tangent_tree(events, basis[ends[6]:]))
+    from .events import hybrid_tangents  # (it builds on this module)
+    return hybrid_tangents(solver, t0, t1, dt0, y0, args, saveat, controller, max_steps,
+                           events, max_events, tangents)
 
 
 def _on_unit_interval(y0, args, saveat, controller, events):
@@ -179,23 +205,11 @@ def _times_back(solution, saveat, t0, t1):
 
 def _sensitivity_equations(run, solver, inputs, basis):
     """The solve of y' = f(t, y, x) together with its forward sensitivity equations
-
-        Ṡ_k = ∂f/∂y S_k + ∂f/∂x e_k,   S_k(t₀) = ∂y₀/∂x e_k,
-
-    for the k directions e_k of `basis` (per leaf of the solve's array inputs, None where
-    not differentiated), as one state z = [y; S₁; …; S_k]: only the vector field is
-    differentiated (one vectorised JVP), not the solver's loop. The error norm reads y
-    alone, so that the steps are the plain solve's, and an explicit Runge–Kutta method
-    applied to the sensitivity equations on those steps is exactly the derivative of its
-    solution at fixed steps (the steps do not depend on x: diffrax's controller stops their
-    gradient), so that S equals what forward mode through the solve gives. Returns the
-    solution's arrays and their sensitivities (`jaxdyn._sensitivities.with_sensitivities`),
-    or None where this does not apply: derivatives with respect to times, tolerances or
-    save times, a state that is not one vector, or a solver other than an explicit
-    Runge–Kutta method.
-
-    Reference: E. Hairer, S. P. Nørsett, G. Wanner, Solving Ordinary Differential Equations
-    I (1993), §I.14 and §II.6 (internal differentiation)."""
+    (`SensitivityEquations`), for the k directions of `basis` (per leaf of the solve's array
+    inputs, None where not differentiated). Returns the solution's arrays and their
+    sensitivities (`jaxdyn._sensitivities.with_sensitivities`), or None where this does not
+    apply: derivatives with respect to times, tolerances or save times, a state that is not
+    one vector, or a solver other than an explicit Runge–Kutta method."""
     t0, t1, dt0, y0, args, saveat, controller, _ = inputs
     counts = [len(jax.tree_util.tree_leaves(eqx.filter(part, eqx.is_array)))
               for part in inputs]
@@ -207,75 +221,136 @@ def _sensitivity_equations(run, solver, inputs, basis):
     if any(b is not None for b in basis[:first_y0] + basis[first_args + counts[4]:]
            + basis[first_args + counts[4] - times_in_args:first_args + counts[4]]):
         return None
-    # By type, not isinstance: diffrax counts a wrapped solver (`Projected`, whose projection
-    # the sensitivities would have to follow) as an instance of the solver it wraps.
-    inner = solver.solver if type(solver) is UnrolledStages else solver
-    if not (issubclass(type(inner), diffrax.AbstractERK) and isinstance(y0, jax.Array)
-            and y0.ndim == 1):
-        return None
-    if saveat.dense:
+    controller = SensitivityEquations.controller_of(solver, y0, saveat, controller)
+    if controller is None:
         return None
     n = y0.shape[0]
-    if isinstance(controller, GuardedAdaptive):
-        if not hasattr(controller.controller, "norm"):
-            return None
-        plain_norm = controller.controller.norm
-        controller = eqx.tree_at(lambda c: c.controller.norm, controller,
-                                 lambda error: plain_norm(error[:n]))
     k = next(b for b in basis if b is not None).shape[0]
     s0 = basis[first_y0]
-    s0 = jnp.zeros((k, n), y0.dtype) if s0 is None else s0
-    arg_basis = basis[first_args:first_args + counts[4]]
-    differentiated = [i for i, b in enumerate(arg_basis) if b is not None]
-    directions = [arg_basis[i] for i in differentiated]
+    arg_leaves = jax.tree_util.tree_leaves(eqx.filter(args, eqx.is_array))
+    equations = SensitivityEquations(
+        vector_field, n, k, [b for x, b in zip(arg_leaves, basis[first_args:])
+                             if eqx.is_inexact_array(x)])
+    z0 = equations.state(y0, jnp.zeros((k, n), y0.dtype) if s0 is None else s0)
+    solution = run((t0, t1, dt0, z0, equations.arguments(args), equations.saveat(saveat),
+                    controller, None), diffrax.ForwardMode(), equations.field)
+    return equations.results(solution)
 
-    def split(z):
-        return z[:n], z[n:].reshape(k, n)
 
-    @eqx.filter_jit  # traced and differentiated once, for every place the solver calls it
-    def field(t, z, augmented):
-        args, directions = augmented
-        y, s = split(z)
-        dynamic, static = eqx.partition(args, eqx.is_array)
+class SensitivityEquations:
+    """A solve of y' = f(t, y, x) together with its forward sensitivity equations
+
+        Ṡ_k = ∂f/∂y S_k + ∂f/∂x e_k,   S_k(t₀) given,
+
+    for k directions e_k of the inexact arrays x of the vector field's args (`arg_basis`: per
+    such leaf, the k directions or None where not differentiated), as one state
+    z = [y; S₁; …; S_k]: only the vector field is differentiated (one vectorised JVP), not the
+    solver's loop. The error norm reads y alone, so that the steps are the plain solve's, and
+    an explicit Runge–Kutta method applied to the sensitivity equations on those steps is
+    exactly the derivative of its solution at fixed steps (the steps do not depend on x:
+    diffrax's controller stops their gradient), so that S equals what forward mode through
+    the solve gives. Built at trace time.
+
+    Reference: E. Hairer, S. P. Nørsett, G. Wanner, Solving Ordinary Differential Equations
+    I (1993), §I.14 and §II.6 (internal differentiation)."""
+
+    def __init__(self, vector_field, n, k, arg_basis):
+        self.n, self.k = n, k
+        self.differentiated = [i for i, b in enumerate(arg_basis) if b is not None]
+        self.directions = [arg_basis[i] for i in self.differentiated]
+
+        @eqx.filter_jit  # traced and differentiated once, for every place the solver calls it
+        def field(t, z, augmented):
+            y, s = self.split(z)
+            f, rates = self.jvps(vector_field, t, y, s, augmented)
+            return jnp.concatenate([f, rates.reshape(-1)])
+
+        self.field = field
+
+    @staticmethod
+    def controller_of(solver, y0, saveat, controller):
+        """The step-size controller of the sensitivity solve (its error norm reads y, the
+        first n entries), or None where the sensitivity equations do not apply: a solver
+        other than an explicit Runge–Kutta method, a state that is not one vector, dense
+        output, a controller without a norm."""
+        # By type, not isinstance: diffrax counts a wrapped solver (`Projected`, whose
+        # projection the sensitivities would have to follow) as an instance of the solver it
+        # wraps.
+        inner = solver.solver if type(solver) is UnrolledStages else solver
+        if not (issubclass(type(inner), diffrax.AbstractERK) and isinstance(y0, jax.Array)
+                and y0.ndim == 1) or saveat.dense:
+            return None
+        n = y0.shape[0]
+        if isinstance(controller, GuardedAdaptive):
+            if not hasattr(controller.controller, "norm"):
+                return None
+            plain_norm = controller.controller.norm
+            controller = eqx.tree_at(lambda c: c.controller.norm, controller,
+                                     lambda error: plain_norm(error[:n]))
+        return controller
+
+    def split(self, z):
+        """(y, S) of the state z: S with one row per direction."""
+        return z[:self.n], z[self.n:].reshape(self.k, self.n)
+
+    def state(self, y, s):
+        """z of (y, S)."""
+        return jnp.concatenate([y, s.reshape(-1)])
+
+    def arguments(self, args):
+        """The sensitivity solve's args: the vector field's, and the directions e_k."""
+        return args, self.directions
+
+    def chosen(self, args):
+        """The differentiated leaves x of `args`."""
+        leaves = jax.tree_util.tree_leaves(eqx.filter(args, eqx.is_inexact_array))
+        return [leaves[i] for i in self.differentiated]
+
+    def substituted(self, args, chosen):
+        """`args` with its differentiated leaves replaced by `chosen`."""
+        dynamic, static = eqx.partition(args, eqx.is_inexact_array)
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+        for i, x in zip(self.differentiated, chosen):
+            leaves[i] = x
+        return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
 
-        def rate(y, chosen):  # f(t, y, x) with x the differentiated leaves of args
-            given = list(leaves)
-            for i, x in zip(differentiated, chosen):
-                given[i] = x
-            return vector_field(
-                t, y, eqx.combine(jax.tree_util.tree_unflatten(treedef, given), static))
+    def jvps(self, fn, t, y, s, augmented):
+        """(g, [dg/dx e_k]_k) of g = fn(t, y, args) along the k directions (S_k, e_k), where
+        `augmented` is (args, the directions e)."""
+        args, directions = augmented
+        return jax.vmap(
+            lambda s_k, e_k: jax.jvp(lambda y, x: fn(t, y, self.substituted(args, x)),
+                                     (y, self.chosen(args)), (s_k, e_k)),
+            out_axes=(None, 0))(s, directions)
 
-        chosen = [leaves[i] for i in differentiated]
-        f, rates = jax.vmap(lambda s_k, e_k: jax.jvp(rate, (y, chosen), (s_k, e_k)),
-                            out_axes=(None, 0))(s, directions)
-        return jnp.concatenate([f, rates.reshape(-1)])
-
-    def observed(fn):  # a saved quantity and its sensitivities: (g(y), ∂g/∂y S)
+    def observed(self, fn):
+        """A saved quantity g(t, y, args) of z, with its sensitivities: (g, ∂g/∂y S + ∂g/∂x e)."""
         def save(t, z, augmented):
-            y, s = split(z)
-            return jax.vmap(lambda s_k: jax.jvp(lambda y: fn(t, y, augmented[0]), (y,), (s_k,)),
-                            out_axes=(None, 0))(s)
+            y, s = self.split(z)
+            return self.jvps(fn, t, y, s, augmented)
         return save
 
-    subs = saveat.subs if isinstance(saveat.subs, (list, tuple)) else [saveat.subs]
-    saveat = diffrax.SaveAt(subs=[eqx.tree_at(lambda sub: sub.fn, sub, observed(sub.fn))
-                                  for sub in subs],
-                            solver_state=saveat.solver_state,
-                            controller_state=saveat.controller_state,
-                            made_jump=saveat.made_jump)
-    z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    solution = run((t0, t1, dt0, z0, (args, directions), saveat, controller, None),
-                   diffrax.ForwardMode(), field)
-    out = eqx.filter(eqx.tree_at(lambda s: s.ys, solution, [y for y, _ in solution.ys],
-                                 is_leaf=lambda x: x is None), eqx.is_array)
-    # S for the saved quantities (saved with the time axis first; k moved to the front),
-    # zero for the rest (times, step counts, the controller's state: independent of x).
-    saved = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 1, 0),
-                                   [s for _, s in solution.ys])
-    zeros = jax.tree_util.tree_map(lambda x: jnp.zeros((k, *x.shape), x.dtype),
-                                   eqx.filter(out, eqx.is_inexact_array))
-    return out, eqx.tree_at(lambda s: s.ys, zeros, saved, is_leaf=lambda x: x is None)
+    def saveat(self, saveat):
+        """diffrax's `SaveAt` of the sensitivity solve: each save's quantities observed with
+        their sensitivities."""
+        subs = saveat.subs if isinstance(saveat.subs, (list, tuple)) else [saveat.subs]
+        return diffrax.SaveAt(subs=[eqx.tree_at(lambda sub: sub.fn, sub, self.observed(sub.fn))
+                                    for sub in subs],
+                              solver_state=saveat.solver_state,
+                              controller_state=saveat.controller_state,
+                              made_jump=saveat.made_jump)
+
+    def results(self, solution):
+        """The plain solution's arrays, and their sensitivities: those of the saved
+        quantities (saved with the time axis first; k moved to the front), zero for the rest
+        (times, step counts, the controller's state: independent of x)."""
+        out = eqx.filter(eqx.tree_at(lambda s: s.ys, solution, [y for y, _ in solution.ys],
+                                     is_leaf=lambda x: x is None), eqx.is_array)
+        saved = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 1, 0),
+                                       [s for _, s in solution.ys])
+        zeros = jax.tree_util.tree_map(lambda x: jnp.zeros((self.k, *x.shape), x.dtype),
+                                       eqx.filter(out, eqx.is_inexact_array))
+        return out, eqx.tree_at(lambda s: s.ys, zeros, saved, is_leaf=lambda x: x is None)
 
 
 class Projected(AbstractForwardingSolver):

@@ -1,0 +1,290 @@
+"""The guards of a hybrid solve: the events as the vector field and the guards see them
+between events (the resting contacts held, their multipliers in place of their guards), what
+a segment's flow reads of them, and how a segment watches its guards for the first zero
+crossing (`jaxdyn._integrate.events` solves segment by segment)."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array
+
+from .._dynamics import equations_of_motion
+from .._events import DIRECTIONS, AbstractEvent, hold
+
+#: A guard within this of zero at the start of a segment is taken to be just before its
+#: crossing (a contact closed at the start is met at once rather than passed through).
+AT_ZERO = 1e-9
+
+
+def check_events(events, max_events) -> tuple[AbstractEvent, ...]:
+    """Trace-time check of `simulate`'s `events` and `max_events`."""
+    if isinstance(events, AbstractEvent):
+        events = (events,)
+    events = tuple(events)
+    for event in events:
+        if not isinstance(event, AbstractEvent):
+            raise ValueError("events must be jaxdyn events (jaxdyn.Event, "
+                             f"jaxdyn.UnilateralContact), got {type(event).__name__}.")
+    if not isinstance(max_events, int) or max_events < 1:
+        raise ValueError(f"max_events must be a positive int, got {max_events!r}.")
+    return events
+
+
+def guard_counts(events, dynamics, t, q, u, p):
+    return [jax.eval_shape(lambda e=e: e.guards(dynamics, t, q, u, p)).shape[0]
+            for e in events]
+
+
+def can_rest(events, dynamics, t, q, u, p) -> bool:
+    """Whether some guard of `events` can come to rest (its event has held rows): the vector
+    field then carries the held-force solve (trace time)."""
+    counts = guard_counts(events, dynamics, t, q, u, p)
+    hybrid = Hybrid(tuple(events), tuple(counts))
+    resting = jnp.zeros((sum(counts),), bool)
+    references = hybrid.references(dynamics, t, q, u, p, resting)
+    return jax.eval_shape(lambda: hybrid.rows(dynamics, t, q, u, p, resting,
+                                              references)) is not None
+
+
+def _guards(events, dynamics, t, q, u, p):
+    return jnp.concatenate([e.guards(dynamics, t, q, u, p) for e in events])
+
+
+class Hybrid(eqx.Module):
+    """The events of a solve and how their guards are laid out: the vector field with the
+    resting contacts held, and the guards with their multipliers in place of those held."""
+
+    events: tuple
+    counts: tuple[int, ...] = eqx.field(static=True)
+
+    def split(self, values):
+        """`values` over all guards, as one array per event."""
+        return jnp.split(values, np.cumsum(self.counts)[:-1])
+
+    def rows(self, dynamics, t, q, u, p, resting, references):
+        """Each event's held rows (E, W, b, active) (None for an event that cannot rest), or
+        None if no event can rest."""
+        return _rows(self, dynamics, t, q, u, p, resting, references)
+
+    def accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
+        """(q̇, u̇, λ): the equations of motion with the rows of the `resting` guards held and
+        their multipliers λ (zero for the others; None if no event can rest)."""
+        return _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references)
+
+    def _accelerations(self, dynamics, t, q, u, p, factorisation, resting, references):
+        rates, free, _, _ = equations_of_motion(dynamics, t, q, u, p, factorisation)
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
+        if rows is None:
+            return rates, free, None
+        rows = [r for r in rows if r is not None]
+        rows = tuple(jnp.concatenate(parts) for parts in zip(*rows))
+        active = rows[3]
+        accelerations, forces = jax.lax.cond(
+            jnp.any(active), lambda: hold(dynamics, t, q, u, p, free, rows),
+            lambda: (free, jnp.zeros(active.shape, u.dtype)))
+        return rates, accelerations, forces
+
+    def _per_event(self, rows, forces):
+        """The multipliers λ of all held rows, as one array per event (None where it has no
+        rows)."""
+        sizes = [0 if r is None else r[3].shape[0] for r in rows]
+        parts = jnp.split(forces, np.cumsum(sizes)[:-1])
+        return [None if r is None else f for r, f in zip(rows, parts)]
+
+    def values(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
+        """The guards, with the multiplier λ_i in place of each guard held at rest. `held`:
+        the held motion (q̇, u̇, λ) at this state where the caller has it already."""
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
+        if rows is None:
+            return _guards(self.events, dynamics, t, q, u, p)
+        if held is not None:
+            forces = held[2]
+        else:
+            # the equations are formed only while some guard rests (a real branch unless
+            # vmapped)
+            size = sum(r[3].shape[0] for r in rows if r is not None)
+            forces = jax.lax.cond(
+                jnp.any(resting),
+                lambda: self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                           references)[2],
+                lambda: jnp.zeros((size,), u.dtype))
+        return jnp.concatenate([
+            e.guards(dynamics, t, q, u, p) if f is None else
+            e.held_values(dynamics, t, q, u, p, f, r, ref)
+            for e, f, r, ref in zip(self.events, self._per_event(rows, forces),
+                                    self.split(resting), references)])
+
+    def held_forces(self, dynamics, t, q, u, p, factorisation, resting, references):
+        """The force each guard carries at rest (zero for the others), shape (K,)."""
+        rows = self.rows(dynamics, t, q, u, p, resting, references)
+        forces = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                    references)[2]
+        return jnp.concatenate([
+            jnp.zeros((c,), u.dtype) if f is None else e.held_forces(f, r, p)
+            for e, c, f, r in zip(self.events, self.counts, self._per_event(rows, forces),
+                                  self.split(resting))])
+
+    def references(self, dynamics, t, q, u, p, resting):
+        """What each event remembers of a segment that starts at (t, q, u)."""
+        return tuple(e.reference(dynamics, t, q, u, p, r)
+                     for e, r in zip(self.events, self.split(resting)))
+
+    def rates(self, dynamics, t, q, u, p, factorisation, resting, references, held=None):
+        """ġ of the guards (as they are, not their multipliers) along the motion at (t, q, u):
+        one JVP along (1, q̇, u̇). `held`: the held motion there, where the caller has it."""
+        if held is None:
+            held = self.accelerations(dynamics, t, q, u, p, factorisation, resting,
+                                      references)
+        rates, accelerations, _ = held
+        rates, accelerations = jax.lax.stop_gradient((rates, accelerations))
+        return jax.jvp(lambda t, q, u: _guards(self.events, dynamics, t, q, u, p),
+                       (t, q, u), (jnp.ones_like(t), rates, accelerations))[1]
+
+
+# The guards' rows and the held accelerations are asked for at every stage of a step, by the
+# guards' rates and by the jump: each is traced once per solve (a nested jit, inlined by XLA)
+# rather than once per use. A chain of two rods striking a floor traced its guards' rows 48
+# times and spent 2.5 of its 8 s of tracing on them.
+@eqx.filter_jit
+def _rows(hybrid, dynamics, t, q, u, p, resting, references):
+    rows = [e.held_rows(dynamics, t, q, u, p, r, ref)
+            for e, r, ref in zip(hybrid.events, hybrid.split(resting), references)]
+    return None if all(r is None for r in rows) else rows
+
+
+@eqx.filter_jit
+def _accelerations(hybrid, dynamics, t, q, u, p, factorisation, resting, references):
+    return hybrid._accelerations(dynamics, t, q, u, p, factorisation, resting, references)
+
+
+class Segment(eqx.Module):
+    """What the flow of a segment reads besides the system (the last of its args): where it
+    started, the side each guard that just fired leaves zero towards, the guards held at
+    rest, what each event remembers, which guards can fire, and the events themselves (an
+    argument, not a constant of the flow, so that their coefficients are differentiated
+    through the flow's own derivative rule)."""
+
+    t_start: Array
+    leaving: Array
+    resting: Array
+    references: tuple
+    armed: Array
+    hybrid: Hybrid
+
+
+def segment_field(t, y, args):
+    """The vector field of a segment: the equations of motion with the resting guards held."""
+    dynamics, p, factorisation, layout, segment = args
+    q, u = layout.split(y)
+    rates, accelerations, _ = segment.hybrid.accelerations(
+        dynamics, t, q, u, p, factorisation, segment.resting, segment.references)
+    return layout.join(rates, accelerations)
+
+
+class Watch:
+    """The guards of a hybrid solve as its segments watch them for a crossing (built at trace
+    time): which event each guard belongs to, each guard's value as the segment that starts
+    at t_start sees it, which guards can fire from there, the `diffrax.Event` whose zero
+    crossing ends a segment, and which guard that crossing was."""
+
+    def __init__(self, hybrid, layout, dtype):
+        self.hybrid, self.layout = hybrid, layout
+        counts = hybrid.counts
+        self.total = sum(counts)
+        self.owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
+        self.owner = jnp.asarray(self.owner_list, jnp.int32)
+        self.tiny = jnp.finfo(dtype).tiny
+        directions = [DIRECTIONS[event.direction] for event, c in zip(hybrid.events, counts)
+                      for _ in range(c)]
+        self.falling = np.array([d is False for d in directions])
+        self.rising = np.array([d is True for d in directions])
+        # The guards that cross one way are watched as one function, the least of them (each
+        # taken so that it falls through zero): the first crossing of any is the first zero of
+        # their least, located by one root find, and the field is written into the program once
+        # rather than once per guard. A guard that cannot fire from where its segment starts
+        # (on the far side of zero, or at zero after firing and leaving it that way) enters as
+        # its absolute value, which touches zero where the guard crosses back without falling
+        # through it. Guards that fire both ways are watched one by one.
+        groups = [(np.flatnonzero(self.falling), 1.0), (np.flatnonzero(self.rising), -1.0)]
+        self.groups = [(index, sign) for index, sign in groups if index.size]
+        self.either = [i for i, d in enumerate(directions) if d is None]
+        self.towards = jnp.asarray(np.where(self.rising, -1.0, 1.0), dtype)  # (falling taken as +)
+        self.event = self._crossing_event(dtype)
+
+    def values(self, t, y, args, sided=False, held=None):
+        """The guards g (K,) at (t, y), as the segment that starts at t_start sees them: with
+        `sided`, those that just fired are put on the side the motion leaves them towards.
+        `held`: the held motion at (t, y), where the caller has it."""
+        dynamics, p, factorisation, _, segment = args
+        t_start, leaving = segment.t_start, segment.leaving
+        q, u = self.layout.split(y)
+        g = segment.hybrid.values(dynamics, t, q, u, p, factorisation, segment.resting,
+                                  segment.references, held)
+        at_start = (t == t_start) & (leaving == 0)
+        # A guard at zero when a segment starts that did not just fire (a ball released on
+        # the floor) counts as just before its crossing, so that it cannot be passed unseen.
+        g = jnp.where(at_start & self.falling & (g <= 0) & (g >= -AT_ZERO), self.tiny, g)
+        g = jnp.where(at_start & self.rising & (g >= 0) & (g <= AT_ZERO), -self.tiny, g)
+        if not sided:
+            return g
+        # At a restart the guards that just fired sit at zero: their side is the one the
+        # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
+        # handled is not found again.
+        side = leaving * jnp.maximum(jnp.abs(g), self.tiny)
+        return jnp.where((t == t_start) & (leaving != 0), side, g)
+
+    def _crossing_event(self, dtype):
+        """The `diffrax.Event` that stops a segment at the first zero crossing of a guard: the
+        least of each one-way group, each guard of either direction alone, its crossing
+        located by Newton's method on the step's dense interpolant."""
+
+        def least(index, sign):
+            """The least of the one-way guards `index`, each falling through zero as it fires."""
+            def cond_fn(t, y, args, **kwargs):
+                armed = args[-1].armed
+                return jnp.min(_watched(index, sign, self.values(t, y, args, sided=True),
+                                        armed))
+            return cond_fn
+
+        def single(index):
+            """Guard `index` alone (it fires either way)."""
+            def cond_fn(t, y, args, **kwargs):
+                return self.values(t, y, args, sided=True)[index]
+            return cond_fn
+
+        root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
+                                  atol=1e-12 if dtype == jnp.float64 else 1e-6)
+        return diffrax.Event([least(index, sign) for index, sign in self.groups]
+                             + [single(i) for i in self.either], root_finder,
+                             [False] * len(self.groups) + [None] * len(self.either))
+
+    def armed(self, t, y, args):
+        """Which guards start a segment where they can fire: on the side they fall from, or
+        at zero just after firing and moving to that side."""
+        leaving = args[-1].leaving
+        g = self.values(t, y, args)
+        just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
+        return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
+
+    def fired(self, mask, t, y, args, held):
+        """(K,) the guards whose crossing ended the segment, from the event's mask: in a
+        one-way group, the least of its guards. `held`: the held motion at (t, y)."""
+        g = self.values(t, y, args, held=held)
+        armed = args[-1].armed
+        fired = jnp.zeros((self.total,), bool)
+        for (index, sign), hit in zip(self.groups, mask[:len(self.groups)]):
+            first = jnp.asarray(index)[jnp.argmin(_watched(index, sign, g, armed))]
+            fired = fired.at[first].set(hit)
+        for i, hit in zip(self.either, mask[len(self.groups):]):
+            fired = fired.at[i].set(hit)
+        return fired
+
+
+def _watched(index, sign, g, armed):
+    """The guards `index` of one group, each taken so that it falls through zero where it
+    fires (sign g), and as |sign g| where it cannot fire from where its segment starts."""
+    value = sign * g[index]
+    return jnp.where(armed[index], value, jnp.abs(value))
