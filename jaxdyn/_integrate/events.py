@@ -292,9 +292,8 @@ class _Segments:
         a guard armed at its start. Returns the segment's start, its args and its solution."""
         t_from = jnp.where(done, self.t1, t_start)
         segment_args = self.segment_args(t_from, y_start, leaving, resting, references)
-        return t_from, segment_args, self._solve(
-            (t_from, y_start, segment_args, self._save_times(t_from), self.t1, self.dt0,
-             self.controller))
+        return t_from, segment_args, self._solve(t_from, y_start, segment_args,
+                                                 self._save_times(t_from))
 
     def segment_args(self, t_from, y_start, leaving, resting, references):
         """The args of a segment's flow: the system's, and the segment's (`Segment`)."""
@@ -314,14 +313,16 @@ class _Segments:
             diffrax.SubSaveAt(ts=ts, fn=self.observe)
         return diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)], controller_state=True)
 
-    def _solve(self, inputs, field=segment_field, saveat=None, event=None):
-        """The segment's `diffrax.diffeqsolve` of `inputs` (t_from, y_start, args, ts, t1, dt0,
-        the step-size controller)."""
-        t_from, y_start, segment_args, ts, t1, dt0, controller = inputs
+    def _solve(self, t_from, y_start, segment_args, ts, field=segment_field, saveat=None,
+               controller=None, event=None):
+        """The segment's `diffrax.diffeqsolve` from (t_from, y_start) to t1, saving at `ts`
+        (or t1) and where it ends; `field`, `saveat`, `controller` and `event` replace the
+        plain solve's (those of the sensitivity solve)."""
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(field), self.solver, t_from, t1, dt0, y_start,
+            diffrax.ODETerm(field), self.solver, t_from, self.t1, self.dt0, y_start,
             args=segment_args, saveat=self._saveat(ts) if saveat is None else saveat,
-            stepsize_controller=controller, adjoint=self.adjoint, max_steps=self.max_steps,
+            stepsize_controller=self.controller if controller is None else controller,
+            adjoint=self.adjoint, max_steps=self.max_steps,
             event=self.watch.event if event is None else event, throw=False)
 
     def _flow_tangents(self, t_from, d_t_from, y_start, d_y_start, segment_args,
@@ -356,10 +357,8 @@ class _Segments:
         event = diffrax.Event(
             [functools.partial(_of_state, cond, equations) for cond in crossing.cond_fn],
             crossing.root_finder, crossing.direction)
-        solution = self._solve(
-            (t_from, equations.state(y_start, s0), arguments, ts, self.t1, self.dt0,
-             controller),
-            equations.field, equations.saveat(saveat), event)
+        solution = self._solve(t_from, equations.state(y_start, s0), arguments, ts,
+                               equations.field, equations.saveat(saveat), controller, event)
         assert solution.event_mask is not None
         out, sensitivities = equations.results(solution)
         # The crossing that ended the segment (none: it reached t1, ∂t* = 0).
