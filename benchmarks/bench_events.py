@@ -9,7 +9,7 @@ e = 0.9, simulated over 5 s (8 impacts), Tsit5 at rtol = atol = 1e-10:
 - **jaxdyn**: `simulate(ball, ..., events=[UnilateralContact(...)], max_events=16)` from
   T and V, under `jax.jit`, and as the README calls it (not jitted, default `throw`);
 - **hand-written diffrax (the floor)**: the closed-form vector field (ẋ, ẏ, 0, −g) in
-  jax.numpy, a `diffrax.Event` on y with the same Newton root finder, and the restart loop
+  jax.numpy, a `diffrax.Event` on y located by optimistix's Newton, and the restart loop
   written by hand as a `lax.scan` over 17 segments with the reset v_y → −e v_y, under
   `jax.jit`: the fastest form of the same work in JAX that we know (no equations formed, no
   impact law solved, no resting-contact logic);

@@ -95,8 +95,8 @@ def chunked_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
 
         # JAX linearises a custom_vmap function through its JVP and cannot split that into a
         # known primal and a linear tangent ("Linearization failed to produce known values"):
-        # `jax.linearize`, and so reverse mode and Newton's method (an event's root find),
-        # failed on every tree's equations. The JVP is therefore that of the function itself
+        # `jax.linearize`, and so reverse mode and Newton's method, failed on every tree's
+        # equations. The JVP is therefore that of the function itself
         # (linearisable, batched by plain `vmap`); the primal keeps its chunked batching.
         @jax.custom_jvp
         def differentiable(arrays):

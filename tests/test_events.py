@@ -330,6 +330,23 @@ def test_stop_event_ends_the_motion():
     assert np.all(np.isnan(np.asarray(sol.q[~before])))
 
 
+def test_the_earliest_of_guards_crossing_in_one_step_fires_whatever_their_order():
+    """A particle at constant speed, x = t, stopped at x = 0.4 or x = 0.7 by guards that fire
+    either way: the motion is polynomial, so the solver's steps are long and one step crosses
+    both. The stop is at t = 0.4 by the guard at 0.4, whatever the order the guards are
+    listed in, whichever side of zero each starts on, and as one vector guard."""
+    free = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.0 * q[0])
+    far = jaxdyn.Event(lambda q, u, p: 0.7 - q[0], direction="either")  # starts positive
+    near = jaxdyn.Event(lambda q, u, p: q[0] - 0.4, direction="either")  # starts negative
+    both = jaxdyn.Event(lambda q, u, p: jnp.stack([0.7 - q[0], q[0] - 0.4]), direction="either")
+    for events, guard in (([far, near], 1), ([near, far], 0), ([both], 1)):
+        sol = jaxdyn.simulate(free, jnp.array([0.0]), jnp.array([1.0]), t1=2.0,
+                              events=events, max_events=2, **TOL)
+        assert int(sol.events.count) == 1
+        np.testing.assert_allclose(sol.events.t[0], 0.4, rtol=1e-14)
+        assert int(sol.events.guard[0]) == guard
+
+
 # -- bad input -------------------------------------------------------------------------------
 
 def _ball_floor(q, p):

@@ -3,15 +3,15 @@ restarted after its jump, in a loop of a fixed number of segments (so that `jax.
 `jax.vmap`, `jax.grad` and `jax.jacfwd` all apply).
 
 Each segment is one `diffrax.diffeqsolve` from the last event to t1 that stops at the first
-zero crossing of a guard, located by Newton's method on the step's dense interpolant
-(`diffrax.Event`). Its derivative, differentiated forward, is carried segment by segment:
-along the flow by the sensitivity equations (only the vector field is differentiated, not the
-solver's loop), then across the event by the implicit function theorem on the crossing
-c(t*, y(t*)) = 0 for the event's time and forward mode through the jump, which together apply
-the saltation matrix of the event (Aizerman and Gantmacher 1958). Where forward
-sensitivities do not apply (an implicit solver, derivatives with respect to the times or
-tolerances), or in reverse mode through checkpoints, the discrete solve is differentiated
-as it is.
+zero crossing of a guard, located on the step's dense interpolant (`diffrax.Event`) by
+bracketing the earliest zero without derivatives (`FirstCrossing`). Its derivative,
+differentiated forward, is carried segment by segment: along the flow by the sensitivity
+equations (only the vector field is differentiated, not the solver's loop), then across the
+event by the implicit function theorem on the crossing c(t*, y(t*)) = 0 for the event's time
+and forward mode through the jump, which together apply the saltation matrix of the event
+(Aizerman and Gantmacher 1958). Where forward sensitivities do not apply (an implicit
+solver, derivatives with respect to the times or tolerances), or in reverse mode through
+checkpoints, the discrete solve is differentiated as it is.
 """
 
 import copy
@@ -232,7 +232,9 @@ class _Segments:
         segment_args = self.segment_args(t_from, y_start, leaving, resting, references)
         d_segment = dataclasses.replace(
             eqx.filter(segment_args[-1], eqx.is_inexact_array), t_start=d_t_from,
-            leaving=d_leaving, references=d_references, hybrid=d_hybrid)
+            leaving=d_leaving, references=d_references, hybrid=d_hybrid,
+            orientation=jnp.zeros((d_y_start.shape[0], self.watch.total), self.dtype),
+            offset=jnp.zeros((d_y_start.shape[0], self.watch.total), self.dtype))
         d_segment_args = (*d_args, d_segment)
         solution, d_solution = self._flow_tangents(t_from, d_t_from, y_start, d_y_start,
                                                    segment_args, d_segment_args)
@@ -299,9 +301,7 @@ class _Segments:
         """The args of a segment's flow: the system's, and the segment's (`Segment`)."""
         segment = Segment(t_from, leaving, resting, references, self.no_guards,
                            self.watch.hybrid)
-        segment = eqx.tree_at(lambda s: s.armed, segment,
-                              self.watch.armed(t_from, y_start, (*self.args, segment)))
-        return (*self.args, segment)
+        return (*self.args, self.watch.start(t_from, y_start, (*self.args, segment)))
 
     def _save_times(self, t_from):
         """The requested save times, those before the segment's start clipped to it."""

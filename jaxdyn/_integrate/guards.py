@@ -3,16 +3,18 @@ between events (the resting contacts held, their multipliers in place of their g
 a segment's flow reads of them, and how a segment watches its guards for the first zero
 crossing (`jaxdyn._integrate.events` solves segment by segment)."""
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array
 
 from .._dynamics import equations_of_motion
 from .._events import DIRECTIONS, AbstractEvent, hold
+from .crossing import FirstCrossing
 
 #: A guard within this of zero at the start of a segment is taken to be just before its
 #: crossing (a contact closed at the start is met at once rather than passed through).
@@ -165,7 +167,10 @@ class Segment(eqx.Module):
     started, the side each guard that just fired leaves zero towards, the guards held at
     rest, what each event remembers, which guards can fire, and the events themselves (an
     argument, not a constant of the flow, so that their coefficients are differentiated
-    through the flow's own derivative rule)."""
+    through the flow's own derivative rule); `orientation`, the sign that makes each guard fall
+    through zero where it fires; `offset`, the values at the start of the guards that just
+    fired (zero but for the round-off of the located crossing), which the segment measures
+    them from."""
 
     t_start: Array
     leaving: Array
@@ -173,6 +178,8 @@ class Segment(eqx.Module):
     references: tuple
     armed: Array
     hybrid: Hybrid
+    orientation: Array | None = None
+    offset: Array | None = None
 
 
 def segment_field(t, y, args):
@@ -188,7 +195,17 @@ class Watch:
     """The guards of a hybrid solve as its segments watch them for a crossing (built at trace
     time): which event each guard belongs to, each guard's value as the segment that starts
     at t_start sees it, which guards can fire from there, the `diffrax.Event` whose zero
-    crossing ends a segment, and which guard that crossing was."""
+    crossing ends a segment, and which guard that crossing was.
+
+    All the guards are watched as one function, the least of them, each oriented so that it
+    falls through zero where it fires: a falling guard as it is, a rising one negated, one
+    that fires either way as the side it starts the segment on makes it. The first crossing
+    of any guard is then the first zero of their least, located by one root find, and the
+    guards are written into the program once (watched one by one, several guards crossing
+    within one step would be told apart by the order they were listed in, not by time). A
+    guard that cannot fire from where its segment starts (on the far side of zero, or at zero
+    after firing and leaving it that way) enters as its absolute value, which touches zero
+    where the guard crosses back without falling through it."""
 
     def __init__(self, hybrid, layout, dtype):
         self.hybrid, self.layout = hybrid, layout
@@ -199,92 +216,83 @@ class Watch:
         self.tiny = jnp.finfo(dtype).tiny
         directions = [DIRECTIONS[event.direction] for event, c in zip(hybrid.events, counts)
                       for _ in range(c)]
-        self.falling = np.array([d is False for d in directions])
-        self.rising = np.array([d is True for d in directions])
-        # The guards that cross one way are watched as one function, the least of them (each
-        # taken so that it falls through zero): the first crossing of any is the first zero of
-        # their least, located by one root find, and the field is written into the program once
-        # rather than once per guard. A guard that cannot fire from where its segment starts
-        # (on the far side of zero, or at zero after firing and leaving it that way) enters as
-        # its absolute value, which touches zero where the guard crosses back without falling
-        # through it. Guards that fire both ways are watched one by one.
-        groups = [(np.flatnonzero(self.falling), 1.0), (np.flatnonzero(self.rising), -1.0)]
-        self.groups = [(index, sign) for index, sign in groups if index.size]
-        self.either = [i for i, d in enumerate(directions) if d is None]
-        self.towards = jnp.asarray(np.where(self.rising, -1.0, 1.0), dtype)  # (falling taken as +)
-        self.event = self._crossing_event(dtype)
+        self.either = np.array([d is None for d in directions])
+        # (falling +1, rising −1, either: set by each segment's start)
+        self.towards = jnp.asarray([{False: 1.0, True: -1.0, None: 0.0}[d] for d in directions],
+                                   dtype)
+        self.event = diffrax.Event([self._least], FirstCrossing(), [False])
 
-    def values(self, t, y, args, sided=False, held=None):
-        """The guards g (K,) at (t, y), as the segment that starts at t_start sees them: with
-        `sided`, those that just fired are put on the side the motion leaves them towards.
-        `held`: the held motion at (t, y), where the caller has it."""
+    def values(self, t, y, args, held=None):
+        """The guards g (K,) at (t, y), those that just fired measured from where the segment
+        restarted them. `held`: the held motion at (t, y), where the caller has it."""
         dynamics, p, factorisation, _, segment = args
-        t_start, leaving = segment.t_start, segment.leaving
         q, u = self.layout.split(y)
         g = segment.hybrid.values(dynamics, t, q, u, p, factorisation, segment.resting,
                                   segment.references, held)
-        at_start = (t == t_start) & (leaving == 0)
-        # A guard at zero when a segment starts that did not just fire (a ball released on
-        # the floor) counts as just before its crossing, so that it cannot be passed unseen.
-        g = jnp.where(at_start & self.falling & (g <= 0) & (g >= -AT_ZERO), self.tiny, g)
-        g = jnp.where(at_start & self.rising & (g >= 0) & (g <= AT_ZERO), -self.tiny, g)
-        if not sided:
-            return g
-        # At a restart the guards that just fired sit at zero: their side is the one the
-        # motion leaves them towards (the sign of ġ⁺), so that the crossing that was
-        # handled is not found again.
-        side = leaving * jnp.maximum(jnp.abs(g), self.tiny)
-        return jnp.where((t == t_start) & (leaving != 0), side, g)
+        return g if segment.offset is None else g - segment.offset
 
-    def _crossing_event(self, dtype):
-        """The `diffrax.Event` that stops a segment at the first zero crossing of a guard: the
-        least of each one-way group, each guard of either direction alone, its crossing
-        located by Newton's method on the step's dense interpolant."""
+    def _oriented(self, g, t, segment, orientation):
+        """The guards g oriented to fall through zero where they fire; one at zero when a
+        segment starts that did not just fire (a ball released on the floor) counts as just
+        before its crossing, so that it cannot be passed unseen."""
+        w = orientation * g
+        fresh = (t == segment.t_start) & (segment.leaving == 0)
+        return jnp.where(fresh & (w <= 0) & (w >= -AT_ZERO), self.tiny, w)
 
-        def least(index, sign):
-            """The least of the one-way guards `index`, each falling through zero as it fires."""
-            def cond_fn(t, y, args, **kwargs):
-                armed = args[-1].armed
-                return jnp.min(_watched(index, sign, self.values(t, y, args, sided=True),
-                                        armed))
-            return cond_fn
+    def watched(self, t, y, args, sided=False, held=None):
+        """The guards as the segment watches them (K,): oriented, and as their absolute values
+        where they cannot fire. With `sided`, those that just fired are put on the side the
+        motion leaves them towards (the sign of ġ⁺), so that the crossing that was handled is
+        not found again."""
+        segment = args[-1]
+        w = self._oriented(self.values(t, y, args, held), t, segment, segment.orientation)
+        if sided:
+            side = segment.orientation * segment.leaving * jnp.maximum(jnp.abs(w), self.tiny)
+            w = jnp.where((t == segment.t_start) & (segment.leaving != 0), side, w)
+        return jnp.where(segment.armed, w, jnp.abs(w))
 
-        def single(index):
-            """Guard `index` alone (it fires either way)."""
-            def cond_fn(t, y, args, **kwargs):
-                return self.values(t, y, args, sided=True)[index]
-            return cond_fn
+    def _least(self, t, y, args, **kwargs):
+        """The least of the watched guards: the `diffrax.Event`'s condition, whose zero
+        crossing (falling) ends the segment, located on the step's dense interpolant by
+        regula falsi (`FirstCrossing`)."""
+        return jnp.min(self.watched(t, y, args, sided=True))
 
-        root_finder = optx.Newton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
-                                  atol=1e-12 if dtype == jnp.float64 else 1e-6)
-        return diffrax.Event([least(index, sign) for index, sign in self.groups]
-                             + [single(i) for i in self.either], root_finder,
-                             [False] * len(self.groups) + [None] * len(self.either))
+    def start(self, t, y, args):
+        """The segment's `Segment` (the last of `args`) completed where it starts at (t, y):
+        the guards' orientation, which can fire (on the side they fall from, or at zero just
+        after firing and moving to that side), and the offset of those that just fired.
 
-    def armed(self, t, y, args):
-        """Which guards start a segment where they can fire: on the side they fall from, or
-        at zero just after firing and moving to that side."""
-        leaving = args[-1].leaving
+        A guard that fires either way is oriented by the side it starts on; one at zero that
+        did not just fire, by the way the motion leaves zero (so that it fires at once, as a
+        one-way guard at zero does when the motion takes it through).
+
+        A guard that just fired restarts at its located crossing, a round-off away from zero
+        and perhaps on the side it crossed to. Measured as it is, it would cross zero again
+        an instant after the restart as the motion leaves it (a ball's height, −10⁻¹⁸ after
+        its bounce, rising through zero 10⁻¹⁶ s later), a crossing that bracketing the first
+        zero in the first step would find. So it is measured from where it restarted."""
+        segment = args[-1]
         g = self.values(t, y, args)
-        just_fired = (leaving != 0) & (jnp.abs(g) <= AT_ZERO)
-        return jnp.where(just_fired, self.towards * leaving > 0, self.towards * g > 0)
+        just_fired = (segment.leaving != 0) & (jnp.abs(g) <= AT_ZERO)
+        orientation = self.towards
+        if self.either.any():
+            dynamics, p, factorisation, layout, _ = args
+            q, u = layout.split(y)
+            rates = segment.hybrid.rates(dynamics, t, q, u, p, factorisation, segment.resting,
+                                         segment.references)
+            at_zero = jnp.where(rates > 0, -1.0, 1.0)
+            side = jnp.where(just_fired, segment.leaving,
+                             jnp.where(jnp.abs(g) > AT_ZERO, jnp.sign(g), at_zero))
+            orientation = jnp.where(self.either, side, orientation)
+        w = self._oriented(g, t, segment, orientation)
+        armed = jnp.where(just_fired, orientation * segment.leaving > 0, w > 0)
+        offset = jnp.where(just_fired, g, 0.0)
+        return dataclasses.replace(segment, armed=armed, orientation=orientation,
+                                   offset=jax.lax.stop_gradient(offset))
 
     def fired(self, mask, t, y, args, held):
-        """(K,) the guards whose crossing ended the segment, from the event's mask: in a
-        one-way group, the least of its guards. `held`: the held motion at (t, y)."""
-        g = self.values(t, y, args, held=held)
-        armed = args[-1].armed
-        fired = jnp.zeros((self.total,), bool)
-        for (index, sign), hit in zip(self.groups, mask[:len(self.groups)]):
-            first = jnp.asarray(index)[jnp.argmin(_watched(index, sign, g, armed))]
-            fired = fired.at[first].set(hit)
-        for i, hit in zip(self.either, mask[len(self.groups):]):
-            fired = fired.at[i].set(hit)
-        return fired
+        """(K,) the guard whose crossing ended the segment (the least of the watched guards
+        where the event's mask says a crossing did). `held`: the held motion at (t, y)."""
+        first = jnp.argmin(self.watched(t, y, args, held=held))
+        return jnp.zeros((self.total,), bool).at[first].set(mask[0])
 
-
-def _watched(index, sign, g, armed):
-    """The guards `index` of one group, each taken so that it falls through zero where it
-    fires (sign g), and as |sign g| where it cannot fire from where its segment starts."""
-    value = sign * g[index]
-    return jnp.where(armed[index], value, jnp.abs(value))

@@ -129,9 +129,9 @@ def simulate(
       Derivatives flow through the inputs' arrays (a policy's weights held as module fields).
     - `events`: a hybrid system's events, or a list of them: `jaxdyn.Event` (a guard
       g(q, u, p) and a reset, or a stop) and `jaxdyn.UnilateralContact` (gaps φ(q, p) ≥ 0
-      with impacts by Newton's law). Each zero crossing of a guard is located to the
-      solver's precision by Newton's method on the step's interpolant, the state jumps, and
-      the solve restarts from there; `Solution.events` records every event (`EventRecord`).
+      with impacts by Newton's law). Each zero crossing of a guard is located to the last
+      float by regula falsi on the step's interpolant, the state jumps, and the solve
+      restarts from there; `Solution.events` records every event (`EventRecord`).
       Derivatives pass through the event times (implicit function theorem) and the jumps;
       by forward sensitivities (the default for few entries) they are carried along each
       segment by the sensitivity equations and mapped across each event by its saltation
