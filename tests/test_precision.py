@@ -112,3 +112,27 @@ def test_float32_stiff_solve_and_stiffness_report():
     slow, fast = np.sort(np.roots([1.0, 1e5, 1e6]).real)[::-1]
     exact = (fast * np.exp(slow * 1.0) - slow * np.exp(fast * 1.0)) / (fast - slow)
     np.testing.assert_allclose(sol.q[-1, 0], exact, atol=2e-5)
+
+
+def test_float32_ball_bounces_and_comes_to_rest():
+    """A ball (e = 0.5) bouncing in float32: its impacts at t₁ (1 + 2e + … + 2e^{k−1}), then
+    at rest on the floor from their accumulation time t₁ (1 + e)/(1 − e), where float64 has
+    it. A restart after each impact lies a float32 round-off (10⁻⁷) from the floor: taken
+    for one (not a contact passed through), so the ball neither falls through nor bounces
+    on at the floor."""
+    ball = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * jnp.sum(qd**2), lambda q, p: 9.81 * q[1])
+    floor = jaxdyn.UnilateralContact(lambda q, p: q[1], restitution=lambda p: p["e"])
+    ts = np.linspace(0.0, 2.0, 5, dtype=np.float32)
+    sol = jaxdyn.simulate(ball, np.array([0.0, 1.0], np.float32), np.array([0.3, 0.0], np.float32),
+                          {"e": np.float32(0.5)}, t1=np.float32(2.0), ts=ts, events=[floor],
+                          max_events=40, solver=diffrax.Tsit5(), rtol=1e-5, atol=1e-5)
+    assert sol.q.dtype == F32
+    first = np.sqrt(2 / 9.81)
+    impacts = first * (1 + np.concatenate([[0.0], np.cumsum(2 * 0.5 ** np.arange(1, 6))]))
+    np.testing.assert_allclose(sol.events.t[:6], impacts, rtol=1e-4)
+    count = int(sol.events.count)
+    assert bool(sol.events.resting[count - 1, 0])
+    np.testing.assert_allclose(sol.events.t[count - 1], first * 3, rtol=1e-3)
+    after = ts > first * 3
+    np.testing.assert_allclose(sol.q[after, 1], 0.0, atol=1e-4)
+    np.testing.assert_allclose(sol.q[after, 0], 0.3 * ts[after], rtol=1e-5)

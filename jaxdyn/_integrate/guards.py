@@ -17,8 +17,15 @@ from .._events import DIRECTIONS, AbstractEvent, hold
 from .crossing import FirstCrossing
 
 #: A guard within this of zero at the start of a segment is taken to be just before its
-#: crossing (a contact closed at the start is met at once rather than passed through).
+#: crossing (a contact closed at the start is met at once rather than passed through), or,
+#: having just fired, at its crossing (float64; `at_zero` for other precisions).
 AT_ZERO = 1e-9
+
+
+def at_zero(dtype) -> float:
+    """`AT_ZERO` in `dtype`: at least a hundred times its resolution, the round-off of a
+    located crossing (in float32, a ball's height after its bounce is about 10⁻⁷ off zero)."""
+    return max(AT_ZERO, 100 * float(jnp.finfo(dtype).eps))
 
 
 def check_events(events, max_events) -> tuple[AbstractEvent, ...]:
@@ -214,6 +221,7 @@ class Watch:
         self.owner_list = [i for i, c in enumerate(counts) for _ in range(c)]  # each guard's event
         self.owner = jnp.asarray(self.owner_list, jnp.int32)
         self.tiny = jnp.finfo(dtype).tiny
+        self.at_zero = at_zero(dtype)
         directions = [DIRECTIONS[event.direction] for event, c in zip(hybrid.events, counts)
                       for _ in range(c)]
         self.either = np.array([d is None for d in directions])
@@ -237,7 +245,7 @@ class Watch:
         before its crossing, so that it cannot be passed unseen."""
         w = orientation * g
         fresh = (t == segment.t_start) & (segment.leaving == 0)
-        return jnp.where(fresh & (w <= 0) & (w >= -AT_ZERO), self.tiny, w)
+        return jnp.where(fresh & (w <= 0) & (w >= -self.at_zero), self.tiny, w)
 
     def watched(self, t, y, args, sided=False, held=None):
         """The guards as the segment watches them (K,): oriented, and as their absolute values
@@ -254,8 +262,10 @@ class Watch:
     def _least(self, t, y, args, **kwargs):
         """The least of the watched guards: the `diffrax.Event`'s condition, whose zero
         crossing (falling) ends the segment, located on the step's dense interpolant by
-        regula falsi (`FirstCrossing`)."""
-        return jnp.min(self.watched(t, y, args, sided=True))
+        regula falsi (`FirstCrossing`). In JAX's default float (diffrax gives the crossing
+        functions that did not fire a Python 0.0, which a float32 guard in 64-bit mode would
+        not match)."""
+        return jnp.min(self.watched(t, y, args, sided=True)).astype(jnp.result_type(float))
 
     def start(self, t, y, args):
         """The segment's `Segment` (the last of `args`) completed where it starts at (t, y):
@@ -273,16 +283,16 @@ class Watch:
         zero in the first step would find. So it is measured from where it restarted."""
         segment = args[-1]
         g = self.values(t, y, args)
-        just_fired = (segment.leaving != 0) & (jnp.abs(g) <= AT_ZERO)
+        just_fired = (segment.leaving != 0) & (jnp.abs(g) <= self.at_zero)
         orientation = self.towards
         if self.either.any():
             dynamics, p, factorisation, layout, _ = args
             q, u = layout.split(y)
             rates = segment.hybrid.rates(dynamics, t, q, u, p, factorisation, segment.resting,
                                          segment.references)
-            at_zero = jnp.where(rates > 0, -1.0, 1.0)
+            leaving_zero = jnp.where(rates > 0, -1.0, 1.0)
             side = jnp.where(just_fired, segment.leaving,
-                             jnp.where(jnp.abs(g) > AT_ZERO, jnp.sign(g), at_zero))
+                             jnp.where(jnp.abs(g) > self.at_zero, jnp.sign(g), leaving_zero))
             orientation = jnp.where(self.either, side, orientation)
         w = self._oriented(g, t, segment, orientation)
         armed = jnp.where(just_fired, orientation * segment.leaving > 0, w > 0)
