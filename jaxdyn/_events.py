@@ -96,7 +96,8 @@ class Event(AbstractEvent):
     - `reset`: Δ(q, u, p) → (q⁺, u⁺), or Δ(t, q, u, p) with `time_dependent=True`; None stops
       the motion at the event.
     - `direction`: "falling" (g from positive to negative, the default), "rising", or
-      "either".
+      "either". Of all the guards of all the events, the first to cross fires, even where
+      several cross within one step of the solver; its time is located to the last float.
     - `time_dependent`: the callbacks take t first.
 
     **Example:**
