@@ -109,7 +109,10 @@ def _equilibrium(dynamics, t, q, p, r, values, options):
         return jnp.concatenate([accelerations, phi])
 
     z0 = jnp.concatenate([q[free], r if solve_inputs else r[:0]])
-    equations = jax.eval_shape(residual, z0, None).shape[0]
+    # (M u̇ = f has a row per speed; the constraints' rows are counted without tracing the
+    # equations of motion once more)
+    equations = zeros_u.shape[0] + jax.eval_shape(
+        lambda z: dynamics.state_constraints(t, state(z)[0], zeros_u, p)[0], z0).shape[0]
     if equations == z0.shape[0]:
         solution = optx.root_find(residual, optx.Newton(rtol=rtol, atol=atol), z0,
                                   max_steps=max_steps, throw=False)
