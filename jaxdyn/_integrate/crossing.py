@@ -30,7 +30,10 @@ class _BracketState(eqx.Module):
     upper: Scalar
     at_lower: Float[Array, " m"]  # the guards at the bracket's ends (halved where kept)
     at_upper: Float[Array, " m"]
-    side: Bool[Array, " m"]  # which side of zero each guard starts on (sign at the step's start)
+    # Which side of zero each function starts the step on. Kept, not read off `at_lower`'s
+    # signs: the Illinois halvings can underflow a tiny value there (a guard that just fired
+    # is put a smallest float to its side at the restart) to zero.
+    side: Bool[Array, " m"]
     tolerance: Scalar  # the bracket's width at which the crossing counts as located
     kept: Int[Array, ""]  # the end the last point left in place (-1 lower, 1 upper, 0 none)
     done: Bool[Array, ""]
@@ -89,7 +92,7 @@ class FirstCrossing(optx.AbstractRootFinder):
         t = self._next(state)
         values = _values(fn, t, args)
         past = jnp.any((values > 0) != state.side)
-        hit = jnp.any(((values == 0) & ((state.at_lower > 0) != (state.at_upper > 0))))
+        hit = jnp.any((values == 0) & (state.side != (state.at_upper > 0)))
         # Illinois: the end kept for a second time in a row has its values halved.
         at_lower = jnp.where(past, jnp.where(state.kept == -1, 0.5, 1.0) * state.at_lower,
                              values)
