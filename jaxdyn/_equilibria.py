@@ -12,6 +12,7 @@ from jaxtyping import Array, Float
 from ._compile import filter_jit
 from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
+from ._linalg import PIVOTED_LU_MAX, PivotedLU
 from ._form.controlled import find_controlled
 from ._state import check_vector, numbers_as_arrays
 
@@ -54,7 +55,8 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
       for speeds of another number, e.g. quaternion coordinates or independent speeds).
 
     Square systems (as many equations as unknowns) are solved by optimistix's Newton root
-    finder, others (constraints, more inputs than prescribed coordinates) by
+    finder (its linear systems, up to 16 unknowns, by Gaussian elimination with partial
+    pivoting), others (constraints, more inputs than prescribed coordinates) by
     Levenberg–Marquardt in the least-squares sense (the minimum-norm correction at each
     step). Tolerances default to √ε (about 1e-8 in float64). When no equilibrium is found,
     the error names the last iterate.
@@ -114,8 +116,11 @@ def _equilibrium(dynamics, t, q, p, r, values, options):
     equations = zeros_u.shape[0] + jax.eval_shape(
         lambda z: dynamics.state_constraints(t, state(z)[0], zeros_u, p)[0], z0).shape[0]
     if equations == z0.shape[0]:
-        solution = optx.root_find(residual, optx.Newton(rtol=rtol, atol=atol), z0,
-                                  max_steps=max_steps, throw=False)
+        # Newton's linear systems of a small model solved in the program's own operations
+        # (`PivotedLU`): LAPACK's LU would load SciPy's LAPACK at the first call, ~0.3 s.
+        solver = (optx.Newton(rtol=rtol, atol=atol, linear_solver=PivotedLU())
+                  if z0.shape[0] <= PIVOTED_LU_MAX else optx.Newton(rtol=rtol, atol=atol))
+        solution = optx.root_find(residual, solver, z0, max_steps=max_steps, throw=False)
     else:
         solution = optx.least_squares(residual, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
                                       z0, max_steps=max_steps, throw=False)

@@ -1,10 +1,13 @@
-"""Solving M a = f for a symmetric positive definite mass matrix M."""
+"""Small linear systems solved in the program's own operations: M a = f for a symmetric
+positive definite mass matrix M (LDLᵀ), and square systems by Gaussian elimination with
+partial pivoting (`PivotedLU`, for Newton's method)."""
 
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import jax.scipy.linalg as jsl
 
@@ -137,7 +140,8 @@ def small_solve(matrix, rhs) -> jax.Array:
     A = Q R, x = R⁻¹ Qᵀ b: backward stable like LU with partial pivoting, and free of the
     loop that turns LU's pivots into a permutation, which XLA compiles separately at each
     of the dozens of places a hybrid solve inlines the contacts' small systems (Delassus
-    matrices, impact and friction laws; a ball's unilateral contact: 2.1 → 1.6 s of XLA)."""
+    matrices, impact and friction laws; a ball's unilateral contact: 2.1 → 1.6 s of XLA).
+    Not `lu_factor` written out either: the hybrid tests took 8% longer with it."""
     q, r = jnp.linalg.qr(matrix)
     column = rhs.ndim == matrix.ndim - 1
     b = rhs[..., None] if column else rhs
@@ -283,3 +287,139 @@ def condition_number(mass_matrix):
     positive definite."""
     eigenvalues = jnp.linalg.eigvalsh(mass_matrix)
     return jnp.where(eigenvalues[0] > 0, eigenvalues[-1] / eigenvalues[0], jnp.inf)
+
+
+def lu_factor(matrix):
+    """P A = L U by Gaussian elimination with partial pivoting (Golub and Van Loan, Matrix
+    Computations, Algorithm 3.4.1), in n − 1 steps of array operations, vectorised over
+    leading axes: at step k the row of largest |a_ik| (i ≥ k) is exchanged with row k and
+    eliminated below it. No library call (LAPACK's getrf: the first in a process loads
+    SciPy's LAPACK, about 0.3 s, and its pivots become a permutation through a loop that
+    XLA compiles apart).
+
+    Returns (L and U packed in one matrix, L unit lower triangular below the diagonal; the
+    rows' order, P A = A[order]; whether A is singular to working precision: a pivot
+    |U_kk| ≤ n ε max |A_ij|, or not finite)."""
+    n = matrix.shape[-1]
+    rows = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), matrix.shape[:-1])
+    a = matrix
+    order = rows
+    for k in range(n - 1):
+        chosen = k + jnp.argmax(jnp.abs(a[..., k:, k]), axis=-1).astype(jnp.int32)
+        is_chosen = rows == chosen[..., None]
+        exchanged = (rows == k) | is_chosen  # rows k and the pivot's trade places
+        pivot_row = jnp.sum(jnp.where(is_chosen[..., None], a, 0), axis=-2)
+        source = jnp.where((rows == k)[..., None], pivot_row[..., None, :], a[..., k, None, :])
+        a = jnp.where(exchanged[..., None], source, a)
+        pivot_order = jnp.sum(jnp.where(is_chosen, order, 0), axis=-1, dtype=jnp.int32)
+        order = jnp.where(exchanged, jnp.where(rows == k, pivot_order[..., None],
+                                               order[..., k, None]), order)
+        multipliers = a[..., k + 1:, k] / a[..., k, k, None]
+        a = a.at[..., k + 1:, k].set(multipliers)
+        a = a.at[..., k + 1:, k + 1:].add(-multipliers[..., :, None] * a[..., k, None, k + 1:])
+    diagonal = jnp.abs(jnp.diagonal(a, axis1=-2, axis2=-1))
+    scale = jnp.max(jnp.abs(matrix), axis=(-2, -1))
+    singular = ~jnp.all(diagonal > n * jnp.finfo(matrix.dtype).eps * scale[..., None], axis=-1)
+    return a, order, singular
+
+
+def lu_solve(lu, order, rhs, *, transposed: bool = False):
+    """x = A⁻¹ b (or A⁻ᵀ b) from `lu_factor`'s P A = L U, b a vector (…, n) or columns
+    (…, n, k): L y = P b, U x = y; transposed Uᵀ w = b, Lᵀ v = w, x = Pᵀ v."""
+    n = lu.shape[-1]
+    column = rhs.ndim == lu.ndim - 1
+    b = rhs[..., None] if column else rhs
+    entry = lambda i, j: lu[..., i, j, None]  # noqa: E731  (broadcast against b's columns)
+    if not transposed:
+        b = jnp.take_along_axis(b, jnp.broadcast_to(order[..., None], b.shape), axis=-2)
+        y: list[Any] = []
+        for i in range(n):  # L y = P b, L unit lower triangular
+            y.append(b[..., i, :] - sum((entry(i, k) * y[k] for k in range(i)), 0))
+        x: list[Any] = [None] * n
+        for i in reversed(range(n)):  # U x = y
+            x[i] = (y[i] - sum((entry(i, k) * x[k] for k in range(i + 1, n)), 0)) / entry(i, i)
+        solution = jnp.stack(x, axis=-2)
+    else:
+        w: list[Any] = []
+        for i in range(n):  # Uᵀ w = b
+            w.append((b[..., i, :] - sum((entry(k, i) * w[k] for k in range(i)), 0))
+                     / entry(i, i))
+        v: list[Any] = [None] * n
+        for i in reversed(range(n)):  # Lᵀ v = w
+            v[i] = w[i] - sum((entry(k, i) * v[k] for k in range(i + 1, n)), 0)
+        stacked = jnp.stack(v, axis=-2)  # P x = v: x[order[i]] = v[i]
+        inverse = jnp.argsort(order, axis=-1)
+        solution = jnp.take_along_axis(stacked, jnp.broadcast_to(inverse[..., None],
+                                                                 stacked.shape), axis=-2)
+    return solution[..., 0] if column else solution
+
+
+# Up to this size `PivotedLU` is used for Newton's steps: its program grows with n (n − 1
+# elimination steps, 2n substitution rows), LAPACK's does not.
+PIVOTED_LU_MAX = 16
+
+
+class PivotedLU(lx.AbstractLinearSolver):
+    """A lineax solver for small square systems by `lu_factor` and `lu_solve`: what
+    optimistix's Newton method solves at each step (the equilibria of `equilibrium`),
+    without LAPACK, whose first call in a process costs about 0.3 s of loading SciPy's
+    LAPACK, more than such a whole solve compiles in. A singular matrix (to working
+    precision) is reported as lineax's `singular` result."""
+
+    def init(self, operator, options):
+        del options
+        if operator.in_size() != operator.out_size():
+            raise ValueError("PivotedLU solves square systems only, got an operator from "
+                             f"{operator.in_size()} to {operator.out_size()} entries.")
+        lu, order, singular = lu_factor(operator.as_matrix())
+        return _LUState(lu, order, singular, _Layout.of(operator.in_structure()),
+                        _Layout.of(operator.out_structure()), False)
+
+    def compute(self, state, vector, options):
+        del options
+        b = jnp.concatenate([jnp.ravel(x) for x in jax.tree_util.tree_leaves(vector)])
+        x = lu_solve(state.lu, state.order, b, transposed=state.transposed)
+        result = lx.RESULTS.where(state.singular, lx.RESULTS.singular, lx.RESULTS.successful)
+        return state.inputs.unravel(x), result, {}
+
+    def transpose(self, state, options):
+        del options
+        return _LUState(state.lu, state.order, state.singular, state.outputs, state.inputs,
+                        not state.transposed), {}
+
+    def conj(self, state, options):
+        del options
+        return eqx.tree_at(lambda s: s.lu, state, jnp.conj(state.lu)), {}
+
+    def assume_full_rank(self):
+        return True
+
+
+class _Layout(eqx.Module):
+    """A pytree of arrays' structure, shapes and dtypes (static): how a flat vector splits."""
+
+    treedef: Any = eqx.field(static=True)
+    shapes: tuple = eqx.field(static=True)
+    dtypes: tuple = eqx.field(static=True)
+
+    @classmethod
+    def of(cls, structure):
+        leaves, treedef = jax.tree_util.tree_flatten(structure)
+        return cls(treedef, tuple(tuple(x.shape) for x in leaves),
+                   tuple(x.dtype for x in leaves))
+
+    def unravel(self, flat):
+        sizes = np.cumsum([int(np.prod(s)) for s in self.shapes])[:-1]
+        parts = jnp.split(flat, sizes)
+        return jax.tree_util.tree_unflatten(self.treedef, [
+            part.reshape(shape).astype(dtype)
+            for part, shape, dtype in zip(parts, self.shapes, self.dtypes)])
+
+
+class _LUState(eqx.Module):
+    lu: jax.Array
+    order: jax.Array
+    singular: jax.Array
+    inputs: _Layout  # the operator's input structure: the solution's
+    outputs: _Layout
+    transposed: bool = eqx.field(static=True)

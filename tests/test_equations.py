@@ -344,3 +344,58 @@ def test_symmetric_solves_match_numpy_and_flag_what_is_not_positive_definite(siz
     difference = (total(a[0] + step * direction) - total(a[0] - step * direction)) / (2 * step)
     assert_close(jnp.sum(jax.grad(total)(jnp.asarray(a[0])) * direction), difference,
                  rtol=1e-7)
+
+
+def test_pivoted_lu_solves_match_numpy_and_exchange_rows_where_a_pivot_vanishes():
+    """`lu_factor` and `lu_solve` (Gaussian elimination with partial pivoting) against NumPy
+    on random square matrices of sizes 1 to 16, A x = b and Aᵀ x = b, one and several
+    right-hand sides; a matrix whose leading entry is zero (no LU without an exchange of
+    rows); a singular matrix flagged; `PivotedLU` through lineax with its derivative against
+    a central difference, and as Newton's solver in optimistix."""
+    import lineax as lx
+    import optimistix as optx
+    from jaxdyn._linalg import PivotedLU, lu_factor, lu_solve
+    rng = np.random.default_rng(7)
+    for size in (1, 2, 3, 8, 16):
+        a = rng.normal(size=(3, size, size))
+        b, columns = rng.normal(size=(3, size)), rng.normal(size=(3, size, 2))
+        lu, order, singular = lu_factor(jnp.asarray(a))
+        assert not np.asarray(singular).any()
+        assert_close(lu_solve(lu, order, jnp.asarray(b)),
+                     np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-10, atol=1e-11)
+        assert_close(lu_solve(lu, order, jnp.asarray(b), transposed=True),
+                     np.linalg.solve(np.swapaxes(a, 1, 2), b[..., None])[..., 0],
+                     rtol=1e-10, atol=1e-11)
+        assert_close(lu_solve(lu, order, jnp.asarray(columns)), np.linalg.solve(a, columns),
+                     rtol=1e-10, atol=1e-11)
+    exchange = np.array([[0.0, 2.0, 1.0], [1.0, 1.0, 0.0], [3.0, 0.0, 1.0]])
+    lu, order, singular = lu_factor(jnp.asarray(exchange))
+    assert not bool(singular)
+    assert_close(lu_solve(lu, order, jnp.array([1.0, 2.0, 3.0])),
+                 np.linalg.solve(exchange, [1.0, 2.0, 3.0]), rtol=1e-14, atol=1e-15)
+    assert bool(lu_factor(jnp.array([[1.0, 2.0], [2.0, 4.0]]))[2])
+
+    matrix, rhs = rng.normal(size=(4, 4)), rng.normal(size=4)
+    solution = lx.linear_solve(lx.MatrixLinearOperator(jnp.asarray(matrix)), jnp.asarray(rhs),
+                               PivotedLU())
+    assert_close(solution.value, np.linalg.solve(matrix, rhs), rtol=1e-12, atol=1e-13)
+    singular_solve = lx.linear_solve(lx.MatrixLinearOperator(jnp.array([[1.0, 2.0], [2.0, 4.0]])),
+                                     jnp.ones(2), PivotedLU(), throw=False)
+    assert singular_solve.result == lx.RESULTS.singular
+
+    def total(m):
+        return jnp.sum(lx.linear_solve(lx.MatrixLinearOperator(m), jnp.asarray(rhs),
+                                       PivotedLU()).value)
+
+    direction, step = rng.normal(size=(4, 4)), 1e-6
+    difference = (total(matrix + step * direction) - total(matrix - step * direction)) / (2 * step)
+    assert_close(jnp.sum(jax.grad(total)(jnp.asarray(matrix)) * direction), difference,
+                 rtol=1e-7)
+
+    def circle_and_line(z, _):  # x² + y² = 4 and x = y: (√2, √2) from (1, 0.5)
+        return jnp.stack([z[0] ** 2 + z[1] ** 2 - 4.0, z[0] - z[1]])
+
+    found = optx.root_find(circle_and_line,
+                           optx.Newton(1e-12, 1e-12, linear_solver=PivotedLU()),
+                           jnp.array([1.0, 0.5]))
+    assert_close(found.value, [np.sqrt(2.0), np.sqrt(2.0)], rtol=1e-12, atol=1e-12)
