@@ -62,7 +62,7 @@ def simulate_batch(
     padding is stripped from the result: every member then fills a lane of XLA's vector code,
     so that its result does not depend on the layout of the batch (devices, chunks, position),
     to the last bit on regular motion; on chaotic motion XLA's vectorisation of the
-    written-out Runge–Kutta stages can differ by an ulp between chunk shapes, which the motion
+    Runge–Kutta stages can differ by an ulp between chunk shapes, which the motion
     amplifies (2e-12 after 5 s of a chaotic double pendulum), as it amplifies the difference
     between a batch and single `jaxdyn.simulate` calls (scalar code).
     Batches larger than memory run in chunks, one compiled solve reused for every chunk, each

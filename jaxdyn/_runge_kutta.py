@@ -4,9 +4,14 @@ diffrax runs the stages of a Runge–Kutta step as a loop (one iteration per sta
 row picked by index). XLA writes such a loop out when its body is small: the hand-written
 equations of a double or elastic pendulum are small enough, equations formed by autodiff
 usually are not, and a loop iteration costs about as much as the equations of a small system
-(a Tsit5 step of the elastic pendulum: 0.6 µs written out, 1.2 µs as a loop). Writing the
-stages out in Python gives every system the straight-line step, with the same arithmetic: the
-same stages, tableau, error estimate and dense output as the wrapped diffrax solver.
+(a Tsit5 step of the elastic pendulum: 0.6 µs written out, 1.2 µs as a loop run stage by
+stage). Writing the stages out in Python gives every system the straight-line step, with the
+same arithmetic: the same stages, tableau, error estimate and dense output as the wrapped
+diffrax solver.
+`simulate` uses it only where XLA runs the loop stage by stage: on the CPU with `import
+jaxdyn`'s small-loop switch in effect, XLA compiles diffrax's whole loop, stages included, as
+one function, which runs about as fast and compiles in half the time
+(`jaxdyn._integrate.simulate.LOOPS_RUN_WHOLE`).
 
 Reference: J. C. Butcher, Numerical Methods for Ordinary Differential Equations (2016), §23.
 """

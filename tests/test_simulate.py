@@ -1,6 +1,7 @@
 """`jaxdyn.simulate` against exact solutions, an independent integrator (SciPy) and
 conservation laws."""
 
+import importlib
 import json
 import subprocess
 import sys
@@ -386,23 +387,31 @@ def test_solution_is_a_pytree_that_can_be_returned_from_jit():
     assert_close(sol.q, q, rtol=0, atol=1e-7)
 
 
-@pytest.mark.usefixtures("xla_defaults")  # (the stages are written out there)
+@pytest.mark.usefixtures("xla_defaults")  # (the stages can be written out there)
 @pytest.mark.parametrize("solver", [diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()],
                          ids=lambda s: type(s).__name__)
-def test_written_out_stages_take_diffrax_steps(solver):
+def test_written_out_stages_take_diffrax_steps(solver, monkeypatch):
     """simulate writes the Runge–Kutta stages out (no loop over them) at XLA's default
-    optimisation, not where XLA is asked to compile fast: the steps, their number and the
-    states are those of diffrax's own stage loop (`scan_kind="lax"`, which simulate leaves
-    as it is) on the same equations, to round-off; and both follow the closed form of the
-    double pendulum to the tolerance."""
+    optimisation where XLA would run diffrax's loop over the stages kernel by kernel (JAX
+    started before `import jaxdyn`, or off the CPU), not where it compiles the loop whole
+    nor where XLA is asked to compile fast: the steps, their number and the states are
+    those of diffrax's own stage loop (`scan_kind="lax"`, which simulate leaves as it is)
+    on the same equations, to round-off; and both follow the closed form of the double
+    pendulum to the tolerance."""
     from helpers import DOUBLE_PENDULUM
-    from jaxdyn._integrate.simulate import _stepper
     from jaxdyn._runge_kutta import UnrolledStages
 
-    assert type(_stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False)) is UnrolledStages
+    module = importlib.import_module("jaxdyn._integrate.simulate")  # (the package's name
+    # `simulate` is the function)
+
+    assert module.LOOPS_RUN_WHOLE  # this process imported jaxdyn before JAX started
+    assert module._stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False) is solver
+    monkeypatch.setattr(module, "LOOPS_RUN_WHOLE", False)
+    assert type(module._stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False)) \
+        is UnrolledStages
     jax.config.update("jax_disable_most_optimizations", True)
     try:
-        assert _stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False) is solver
+        assert module._stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False) is solver
     finally:
         jax.config.update("jax_disable_most_optimizations", False)
     p = DOUBLE_PENDULUM.params

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax._src import core as jax_core
 
+from .. import _xla
 from .._compile import filter_jit
 from .._dynamics import (
     AbstractDynamics,
@@ -379,9 +380,11 @@ def _save_at(save, layout, ts, t0, t1, dense, invalid):
 
 def _stepper(solver, dynamics, size, forward, resting_field):
     """The solver as it steps: an explicit Runge–Kutta method's stages written out for small
-    equations differentiated forward (`UnrolledStages`) unless XLA is asked to compile fast
-    (`jax_disable_most_optimizations`), the step projected onto the constraints where the
-    system has a projection (`Projected`)."""
+    equations differentiated forward (`UnrolledStages`) where XLA would run diffrax's loop
+    over them kernel by kernel (`LOOPS_RUN_WHOLE` false: off the CPU, or JAX started before
+    `import jaxdyn`), unless XLA is asked to compile fast (`jax_disable_most_optimizations`);
+    the step projected onto the constraints where the system has a projection
+    (`Projected`)."""
     # Events whose contacts can rest put the held-force solve into the vector field, and a
     # hybrid solve also evaluates the field in its root find, its guards' rates and its
     # saves: written out, the stages multiply that program (a particle under rigid contact
@@ -389,19 +392,14 @@ def _stepper(solver, dynamics, size, forward, resting_field):
     if (isinstance(solver, diffrax.AbstractERK) and solver.scan_kind is None
             and size is not None and size <= WRITTEN_OUT_STAGES_MAX and forward
             and not resting_field
+            and not (LOOPS_RUN_WHOLE and jax.default_backend() == "cpu")
             and not jax.config.read("jax_disable_most_optimizations")):
-        # The same steps, without a loop over the stages (2–3× faster on small systems).
-        # Not for reverse mode, whose pass through written-out stages costs 3× diffrax's
-        # loop, nor for large equations (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's
-        # `ForwardMode` (chosen to be differentiated: jvp and vmap of written-out stages
-        # put the equations into the program once per stage and tangent; a fit of the
-        # torque-driven double pendulum, three experiments, compiled in 44.5 s written out
-        # and 23.8 s as a loop; a later fit took 0.89 and 1.28 s). Forward sensitivities
-        # (`forward`) keep them written out, primal and sensitivity equations alike: as a
-        # loop, the double pendulum's gradient compiled 2–3× faster but ran 4× slower.
-        # Nor where the user has asked XLA for compile time over run time
-        # (`jax_disable_most_optimizations`): written out, the double pendulum's solve
-        # (Dopri8) compiled in 1.15-1.2 s of XLA there, as a loop in 0.45-0.57 s.
+        # The same steps, without a loop over the stages. Not for reverse mode, whose pass
+        # through written-out stages costs 3× diffrax's loop, nor for large equations
+        # (`WRITTEN_OUT_STAGES_MAX`), nor under diffrax's `ForwardMode` (chosen to be
+        # differentiated: jvp and vmap of written-out stages put the equations into the
+        # program once per stage and tangent), nor where the user has asked XLA for compile
+        # time over run time (`jax_disable_most_optimizations`).
         solver = UnrolledStages(solver)
     if dynamics.state_projection() is not None:
         solver = Projected(solver)
@@ -456,14 +454,25 @@ def _check_save(save, dynamics):
                 "'contact').")
 
 
-# Runge–Kutta stages are written out (`UnrolledStages`) for equations of at most this many
-# scalar operations in straight-line code. Measured with Dopri8 (first simulate / run time,
-# written out against diffrax's stage loop): double pendulum (183 operations) 0.88 / 0.74 s,
-# 0.11 / 0.34 ms; articulated chain of 6 (1302) 4.3 / 2.0 s, 0.78 / 1.69 ms; chain of 6 rods
-# (1782) 4.0 / 1.4 s, 1.35 / 1.94 ms; articulated chain of 8 (1812) 18 / 3.1 s, 16.9 / 11.8 ms;
-# chain of 10 rods (3746) 41 / 5.3 s, 17.0 / 10.3 ms. Equations evaluated as arrays keep the
-# loop too (UR5 arm: 7.8 / 2.8 s, 10.8 / 5.0 ms): written out, a step's program is the
-# equations' times the stages, which XLA compiles slowly and runs from a cold cache.
+# Whether XLA compiles the solver's loop, stages and all, as one function (on the CPU, with
+# `import jaxdyn`'s small-loop switch in effect, `jaxdyn._xla`): diffrax's loop over the
+# stages then costs about what written-out stages cost to run, and far less to compile. The
+# double pendulum from T and V, Dopri8 at 1e-10 over 10 s, written out against the loop (one
+# process; benchmarks/LOG.md, "Written-out stages, measured again"): the forward solve's
+# first call 2.15 / 0.98 s, its run 0.446 / 0.504 ms; `jax.grad` through it (forward
+# sensitivities) 4.3 / 1.4 s and 1.63 / 0.97 ms. Without the switch the loop runs stage by
+# stage, kernel by kernel: the same solve 0.41 ms written out, 3.56 ms as a loop.
+LOOPS_RUN_WHOLE = _xla.SMALL_LOOPS_ONE_FUNCTION
+
+# Where they are written out (`_stepper`), for equations of at most this many scalar
+# operations in straight-line code. Measured with Dopri8 before `LOOPS_RUN_WHOLE` (first
+# simulate / run time, written out against diffrax's stage loop run stage by stage): double
+# pendulum (183 operations) 0.88 / 0.74 s, 0.11 / 0.34 ms; articulated chain of 6 (1302) 4.3 /
+# 2.0 s, 0.78 / 1.69 ms; chain of 6 rods (1782) 4.0 / 1.4 s, 1.35 / 1.94 ms; articulated chain
+# of 8 (1812) 18 / 3.1 s, 16.9 / 11.8 ms; chain of 10 rods (3746) 41 / 5.3 s, 17.0 / 10.3 ms.
+# Equations evaluated as arrays keep the loop too (UR5 arm: 7.8 / 2.8 s, 10.8 / 5.0 ms):
+# written out, a step's program is the equations' times the stages, which XLA compiles slowly
+# and runs from a cold cache.
 WRITTEN_OUT_STAGES_MAX = 1500
 
 
