@@ -397,7 +397,9 @@ def formed_mass_matrix(dynamics, t, q, u, p):
     one (Appell's M as the Hessian of the Gibbs function: 1192 operations for a chain of two
     rods, where the written-out form folds the constants and emits each product once), and a
     hybrid solve holds it at every place its vector field is asked for."""
-    return unrolled(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
+    # (M from `formed_equations`, whose trace the equations of motion have cached: the
+    # user's functions are not traced again; the straight-line code keeps M's part alone)
+    return unrolled(lambda *args: formed_equations(dynamics, *args)[0], t, q, u, p,
                     max_elements=None if dynamics.mass_matrix_in_straight_line else 0)
 
 
