@@ -403,6 +403,22 @@ def test_callback_indexing_past_the_coordinates_is_an_error():
         jaxdyn.simulate(system, Q0, np.array([1.0]), None, t1=1.0)
 
 
+def test_a_links_value_indexing_past_its_parameter_is_an_error():
+    """A tree's link whose mass is a function of p reading p["m"][2] of a 2-vector: the
+    clamped read would give the second mass to this link; the tree's checks of the user's
+    callables name it, while the library's own lookups of a URDF tree's parameters are not
+    evaluated for the check."""
+    tree = jaxdyn.RigidBodyTree([jaxdyn.Link("arm", jaxdyn.Revolute((0, 0, 1)),
+                                             mass=lambda p: p["m"][2], com=(0.3, 0.0, 0.0),
+                                             inertia=0.01 * jnp.eye(3))],
+                                gravity=jnp.array([0.0, -9.81, 0.0]))
+    p = {"m": jnp.array([1.0, 2.0])}
+    with pytest.raises(ValueError, match="indexes past the end"):
+        jaxdyn.ArticulatedBody(tree).accelerations(0.0, jnp.zeros(1), jnp.zeros(1), p)
+    with pytest.raises(ValueError, match="indexes past the end"):
+        jaxdyn.simulate(jaxdyn.ArticulatedBody(tree), jnp.zeros(1), jnp.zeros(1), p, t1=0.1)
+
+
 # ---------------------------------------------------------------------------------------------
 # Hostile arguments of simulate: tolerances, save times, step budget, parameters, callbacks
 # ---------------------------------------------------------------------------------------------

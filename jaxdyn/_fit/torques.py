@@ -32,7 +32,7 @@ from .._form.newton_euler import (
     inverse_dynamics_regressor,
 )
 from .._system.tree import RigidBodyTree
-from .._system.urdf import LinkParameter
+from .._system.links import LinkParameter
 from .base_parameters import PARAMETER_NAMES, BaseParameters, base_parameters
 
 

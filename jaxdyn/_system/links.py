@@ -36,6 +36,23 @@ def _value(x, p):
     return jnp.asarray(x(p) if callable(x) else x)
 
 
+class LinkParameter(eqx.Module):
+    """Reads a link's inertial value from the parameters: p[link][key] (`from_urdf`'s links;
+    the library's own lookup, which the trace-time check of the user's callables skips)."""
+
+    link: str = eqx.field(static=True)
+    key: str = eqx.field(static=True)
+
+    def __call__(self, p):
+        return p[self.link][self.key]
+
+
+def users_callable(x) -> bool:
+    """Whether a link's or tree's value is a function the user wrote (not a number, an array
+    or the library's `LinkParameter`): what `check_static_indexing` needs to run."""
+    return callable(x) and not isinstance(x, LinkParameter)
+
+
 class Link(eqx.Module):
     """A rigid link of a `RigidBodyTree`, and the joint that moves it relative to its parent.
 

@@ -40,7 +40,7 @@ from .._state import check_vector, frozen_constant
 from . import spatial, tree_levels
 from .base import AbstractMultibody
 from .joints import Fixed
-from .links import Link, LinkLoad, _rotation, _value, _vector3, _Welded
+from .links import Link, LinkLoad, _rotation, _value, _vector3, _Welded, users_callable
 from .tree_levels import _stacked
 
 JOINT_ARGS = ("q", "u", "p")
@@ -561,13 +561,21 @@ class RigidBodyTree(AbstractMultibody):
         return total
 
     def user_functions(self, t, q, u, p, kinematic_map=None):
-        """The user's callables alone (energies, forces, loads, gravity, inertial parameters):
-        the recursive kinematics is the library's and needs no check."""
+        """The user's callables alone (energies, forces, loads, gravity, the links' values
+        given as functions of p): the recursive kinematics, and the parameters' lookups of
+        a tree read from a URDF file (`LinkParameter`), are the library's and need no check
+        (Talos: 78 links' inertial values, 0.24 of 2.1 s of the first forward dynamics'
+        trace under cProfile)."""
         self._check_state(q, u, kinematic_map)
         args = (q, u, p) if not self.time_dependent else (t, q, u, p)
         names = JOINT_ARGS if not self.time_dependent else ("t", *JOINT_ARGS)
         loads = [(self._load_vector(load.force, "LinkLoad force", names, args, q.dtype),
                   self._load_vector(load.torque, "LinkLoad torque", names, args, q.dtype))
                  for load in self.loads]
-        return (self.elastic_energy(t, q, p), self.joint_forces(t, q, u, p), loads,
-                self.gravity_vector(p, q.dtype), self.link_inertias(p, q.dtype))
+        values = [_value(x, p) for link in self.links
+                  for x in (link.mass, link.com, link.inertia, link.stiffness, link.damping)
+                  if users_callable(x)]
+        forces = self.joint_forces(t, q, u, p) if self.forces is not None else None
+        return (self.elastic_energy(t, q, p) if self.potential is not None else None,
+                forces, loads, _value(self.gravity, p) if users_callable(self.gravity)
+                else None, values)

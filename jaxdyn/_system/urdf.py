@@ -8,23 +8,12 @@ Mimic joints are imported as independent joints (as Pinocchio does by default).
 
 from typing import Any
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .joints import Fixed, Free, Planar, Prismatic, Revolute
-from .links import Link
+from .links import Link, LinkParameter
 from .tree import RigidBodyTree
-
-
-class LinkParameter(eqx.Module):
-    """Reads a link's inertial value from the parameters: p[link][key]."""
-
-    link: str = eqx.field(static=True)
-    key: str = eqx.field(static=True)
-
-    def __call__(self, p):
-        return p[self.link][self.key]
 
 
 def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
