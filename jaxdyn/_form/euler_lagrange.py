@@ -142,7 +142,11 @@ class Lagrangian(AbstractDynamics):
         if isinstance(self.kinetic, _SystemQuantity):
             system = self.kinetic.system
             return system.user_functions(t, q, system.speeds_from_rates(t, q, qd, p), p)
-        return self._lagrangian(t, q, qd, p), self._nonconservative(t, q, qd, p)
+        # (Q − ∂D/∂q̇ only where the user gave either: the check evaluates constants at
+        # trace time, and a zero vector formed there compiles a program of its own)
+        applied = (self._nonconservative(t, q, qd, p)
+                   if self.forces is not None or self.dissipation is not None else None)
+        return self._lagrangian(t, q, qd, p), applied
 
     def form_accelerations(self, t, q, qd, p=None, *, small):
         return accelerations_from_equations(self, t, q, qd, p, small=small)
