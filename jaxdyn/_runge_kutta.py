@@ -10,7 +10,7 @@ same arithmetic: the same stages, tableau, error estimate and dense output as th
 diffrax solver.
 `simulate` uses it only where XLA runs the loop stage by stage: on the CPU with `import
 jaxdyn`'s small-loop switch in effect, XLA compiles diffrax's whole loop, stages included, as
-one function, which runs about as fast and compiles in half the time
+one function, which runs 10–15 % slower and compiles in half the time
 (`jaxdyn._integrate.simulate.LOOPS_RUN_WHOLE`).
 
 Reference: J. C. Butcher, Numerical Methods for Ordinary Differential Equations (2016), §23.

@@ -404,7 +404,8 @@ def test_written_out_stages_take_diffrax_steps(solver, monkeypatch):
     module = importlib.import_module("jaxdyn._integrate.simulate")  # (the package's name
     # `simulate` is the function)
 
-    assert module.LOOPS_RUN_WHOLE  # this process imported jaxdyn before JAX started
+    # (both settings patched: the process's own depends on XLA_FLAGS and the import order)
+    monkeypatch.setattr(module, "LOOPS_RUN_WHOLE", True)
     assert module._stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False) is solver
     monkeypatch.setattr(module, "LOOPS_RUN_WHOLE", False)
     assert type(module._stepper(solver, DOUBLE_PENDULUM.dynamics, 183, True, False)) \
