@@ -35,6 +35,21 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
 
 
+
+def promoted(result) -> RESULTS:
+    """A solve's result code (diffrax's `RESULTS`, or already jaxdyn's) as a jaxdyn
+    `RESULTS` member.
+
+    An equinox enumeration stores its parent's items first and in their order, so each of
+    diffrax's codes keeps its value in jaxdyn's enumeration: promoting one relabels the value.
+    (`RESULTS.promote` looks the value up in a table under `jax.ensure_compile_time_eval`,
+    which compiles two tiny programs in a process's first solve: 40-90 ms of it.)
+    """
+    if isinstance(result, RESULTS):
+        return result
+    member: Any = type(RESULTS.successful)  # equinox's EnumerationItem (an enum to a type checker)
+    return member(result._value, RESULTS)
+
 class ConstraintRecord(eqx.Module):
     """Constraint quantities along a trajectory of a `jaxdyn.Constrained` formulation
     (`simulate(..., save=(..., "constraints"))`).

@@ -31,6 +31,9 @@ _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (
     "not": np.invert, "xor": np.bitwise_xor, "square": np.square, "floor": np.floor,
     "ceil": np.ceil, "sign": np.sign, "copy": lambda x: x, "copy_p": lambda x: x,
 }
+# Correctly rounded in IEEE arithmetic on floating-point operands, as XLA computes them
+# (integer division truncates in XLA, not in NumPy).
+_EXACT_INEXACT = {"div": np.divide, "sqrt": np.sqrt}
 _ELEMENTWISE = set(_EXACT) | {
     "div", "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh",
     "asinh", "acosh", "atanh", "exp", "exp2", "log", "log1p", "expm1", "sqrt", "rsqrt", "cbrt",
@@ -295,8 +298,14 @@ def _fold(primitive, name, params, xs, dtypes, out_dtype):
     if name == "integer_pow":
         with np.errstate(all="ignore"):
             return _constant(xs[0] ** params["y"], out_dtype)
+    if name in _EXACT_INEXACT and np.issubdtype(out_dtype, np.inexact):
+        with np.errstate(all="ignore"):
+            return _constant(_EXACT_INEXACT[name](*xs), out_dtype)
+    # (The operands transferred, not converted by `jnp.asarray`: a conversion compiles a
+    # program of its own, once per dtype, in a process's first trace.)
     with jax.ensure_compile_time_eval():
-        value = primitive.bind(*[jnp.asarray(x, d) for x, d in zip(xs, dtypes)], **params)
+        value = primitive.bind(*[jax.device_put(np.asarray(x, d)) for x, d in zip(xs, dtypes)],
+                               **params)
     return _constant(np.asarray(value), out_dtype)
 
 

@@ -517,3 +517,18 @@ def test_programs_called_with_values_are_kept_by_the_persistent_compilation_cach
     second = run()  # (a program with a host callback is asked for, but neither hit nor kept)
     assert second["hits"] == second["requests"] == first["requests"], second
     assert second["misses"] == 0, second
+
+
+def test_every_diffrax_result_keeps_its_meaning_as_a_jaxdyn_result():
+    """A solve's result code, relabelled as jaxdyn's (`promoted`), is the member equinox's own
+    promotion gives, for every code diffrax has, also as a traced value."""
+    from jaxdyn._solution import promoted
+
+    # (equinox keeps an enumeration's members by name; the test may read that table)
+    for name, item in diffrax.RESULTS._name_to_item.items():
+        ours, equinox = promoted(item), jaxdyn.RESULTS.promote(item)
+        assert ours == equinox and ours == getattr(jaxdyn.RESULTS, name), name
+        traced = jax.jit(lambda flag: promoted(diffrax.RESULTS.where(
+            flag, item, diffrax.RESULTS.successful))._value)(True)
+        assert int(traced) == int(equinox._value), name
+        assert jaxdyn.RESULTS[ours] == diffrax.RESULTS[item], name  # the same message

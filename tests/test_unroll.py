@@ -75,6 +75,28 @@ def test_constant_folding_leaves_only_the_arithmetic_that_depends_on_inputs():
                  rtol=0)
 
 
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_folded_divisions_and_square_roots_are_xlas_to_the_bit(dtype):
+    """Constants folded at trace time by NumPy (division, square root: correctly rounded in
+    IEEE arithmetic) equal what XLA computes for the same operands, zeros, infinities and
+    NaN included; an integer division still truncates, as XLA's does. (Not subnormals: XLA's
+    CPU kernels flush them to zero, and neither these folds nor the others do.)"""
+    values = np.concatenate([RNG.normal(size=200) * 10.0 ** RNG.integers(-15, 15, 200),
+                             [0.0, -0.0, 1.0, -1.0, np.inf, -np.inf, np.nan, 3.0]])
+    a = jnp.asarray(values.astype(dtype))
+    b = jnp.roll(a, 7)
+    # (`unrolled` folds operations on the constants it closes over; the reference is XLA's
+    # kernels on the same operands)
+    folded = jax.jit(lambda: unrolled(lambda: (a / b, jnp.sqrt(a))))()
+    xla = jax.jit(lambda a, b: (a / b, jnp.sqrt(a)))(a, b)
+    for f, x in zip(folded, xla):
+        assert f.dtype == x.dtype == dtype
+        assert np.asarray(f).tobytes() == np.asarray(x).tobytes()
+    quotient = jax.jit(lambda: unrolled(lambda: jax.lax.div(jnp.asarray([-7, 7]), 2)))()
+    assert quotient.tolist() == [-3, 3]
+
+
 def _repeats(jaxpr):
     """Equations of a jaxpr (its outer level) that repeat an earlier one: the same primitive
     and parameters on the same operands (up to order, for additions and products)."""

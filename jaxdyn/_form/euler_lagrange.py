@@ -106,18 +106,21 @@ class Lagrangian(AbstractDynamics):
 
     def _nonconservative(self, t, q, qd, p):
         """Q − ∂D/∂q̇."""
-        total = jnp.zeros_like(qd)
+        # (No zero vector to start from: formed under the index check's compile-time
+        # evaluation, a constant compiles two small programs of its own.)
+        total = None
         if self.forces is not None:
             value = call(self.forces, "generalized forces Q", self.time_dependent,
                          VELOCITY_ARGS, t, q, qd, p)
-            total = total + vector(value, "generalized forces Q", qd.shape)
+            total = vector(value, "generalized forces Q", qd.shape)
         if self.dissipation is not None:
             def dissipation(qd):
                 value = call(self.dissipation, "dissipation function D", self.time_dependent,
                              VELOCITY_ARGS, t, q, qd, p)
                 return scalar(value, "dissipation function D")
-            total = total - jax.grad(dissipation)(qd)
-        return total
+            rate = jax.grad(dissipation)(qd)
+            total = -rate if total is None else total - rate
+        return jnp.zeros_like(qd) if total is None else total
 
     def _check(self, t, q, qd):
         q = check_vector(q, "q")

@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._sensitivities import forward_tangents
-from .._solution import RESULTS
+from .._solution import RESULTS, promoted
 from .guards import Hybrid, Segment, Watch, can_rest, guard_counts, segment_field
 from .solve import SensitivityEquations
 
@@ -471,7 +471,7 @@ def _outcome(solution, result, ran, happened, terminal, index, max_events):
         solution.result)
     failed = ran & (segment_result != diffrax.RESULTS.successful)
     exhausted = ran & happened & ~terminal & (index >= max_events)
-    new_result = RESULTS.where(failed, RESULTS.promote(segment_result), result)
+    new_result = RESULTS.where(failed, promoted(segment_result), result)
     new_result = RESULTS.where(exhausted, RESULTS.max_events_reached, new_result)
     return failed, exhausted, new_result
 

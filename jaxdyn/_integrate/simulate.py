@@ -28,7 +28,7 @@ from .._errors import (
 from .._linalg import factorise
 from .._runge_kutta import UnrolledStages
 from .._sensitivities import MAX_FORWARD, differentiable_size
-from .._solution import RESULTS, Solution
+from .._solution import RESULTS, Solution, promoted
 from .._state import check_parameter_dtypes, check_vector, numbers_as_arrays, state_dtype
 from .._variational import AbstractStructurePreserving
 from .failures import diagnose, guard, mass_matrix_condition, raise_failures
@@ -292,11 +292,11 @@ def _simulate(dynamics, q0, u0, numbers, options):
     stalled = solution.controller_state[-1]
     if lean:  # a failure is diagnosed by running the full program again
         result = RESULTS.where(stalled, RESULTS.nonfinite_equations,
-                               _promoted(solution.result))
+                               promoted(solution.result))
     else:
         result, failure = diagnose(dynamics, p, factorisation, t_last, q_last[0], u_last[0],
                                     stalled, jnp.sign(t1 - t0), jnp.abs(t1 - t0))
-        result = RESULTS.where(stalled, result, _promoted(solution.result))
+        result = RESULTS.where(stalled, result, promoted(solution.result))
     if invalid:  # (lean only) the full program, run on failure, names the argument
         assert nonfinite_input is not None  # a lean program stands in for non-finite inputs
         nonfinite_input = nonfinite_input | jnp.any(jnp.stack(invalid))
@@ -530,8 +530,3 @@ def _check_shapes(dynamics, t0, q0, u0, p):
             f"The dynamics expects {accelerations.shape[0]} speeds but u0 has shape "
             f"{u0.shape}."
         )
-
-
-def _promoted(result):
-    """A solve's result as a jaxdyn `RESULTS` member (a hybrid solve's already is one)."""
-    return result if isinstance(result, RESULTS) else RESULTS.promote(result)
