@@ -403,6 +403,20 @@ def test_callback_indexing_past_the_coordinates_is_an_error():
         jaxdyn.simulate(system, Q0, np.array([1.0]), None, t1=1.0)
 
 
+
+@pytest.mark.parametrize("callback", ["forces", "dissipation"])
+def test_forces_or_dissipation_indexing_past_the_speeds_is_an_error(callback):
+    """Q or D reading qd[1] of a system of one coordinate: the clamped read would damp or
+    drive the motion with q̇0 and return a plausible, wrong motion. The check evaluates the
+    user's Q and D themselves (no derivative of D is formed for it)."""
+    bad = {"forces": dict(forces=lambda q, qd, p: -0.1 * qd[1] * qd),
+           "dissipation": dict(dissipation=lambda q, qd, p: 0.05 * qd[1] ** 2)}[callback]
+    system = jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.5 * q @ q, **bad)
+    with pytest.raises(ValueError, match="indexes past the end"):
+        jaxdyn.simulate(system, Q0, np.array([1.0]), None, t1=1.0)
+    with pytest.raises(ValueError, match="indexes past the end"):
+        system.accelerations(0.0, Q0, np.array([1.0]))
+
 def test_a_links_value_indexing_past_its_parameter_is_an_error():
     """A tree's link whose mass is a function of p reading p["m"][2] of a 2-vector: the
     clamped read would give the second mass to this link; the tree's checks of the user's

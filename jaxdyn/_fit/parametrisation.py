@@ -53,7 +53,9 @@ class Positive(AbstractParametrisation):
             raise ValueError(f"{name} is parametrised as positive but its initial value is "
                              f"{np.asarray(x).tolist()}. Start it positive, or pass "
                              "jaxdyn.Unconstrained() for it in `parametrisation`.")
-        return jnp.log(x)
+        # (x is a value here: NumPy's logarithm and a transfer, where `jnp.log` would compile a
+        # program of its own in a process's first fit)
+        return jax.device_put(np.log(np.asarray(x)))
 
     def to_physical(self, z):
         return jnp.exp(z)

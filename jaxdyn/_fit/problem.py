@@ -100,7 +100,8 @@ def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation,
              fit_initial_states, shooting, simulate_options, adjoint, horizons=None):
     """The `TrajectoryMatching` problem (in precision `dtype`) and the latent starting
     point."""
-    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)
+    # (Python floats transferred, not converted: a conversion compiles a program of its own)
+    params = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x, dtype))
                                     if isinstance(x, float) else x, params)
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         if eqx.is_inexact_array(leaf) and not np.all(np.isfinite(np.asarray(leaf))):

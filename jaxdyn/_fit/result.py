@@ -15,7 +15,7 @@ from .adequacy import adequacy
 from .residuals import (
     TrajectoryMatching,
 )
-from .uncertainty import Uncertainty, analyse, flatten_latent, parameter_names
+from .uncertainty import Uncertainty, analyse, parameter_names
 from .problem import _evaluate, fit_dtype
 
 
@@ -154,13 +154,13 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
         predicted_groups, loss, r_all, r_obs = _evaluate(problem, latent)
     for group, (q0, u0), predicted in zip(problem.groups, states, predicted_groups):
         for k, i in enumerate(group.indices):
-            initial_states[i] = (q0[k], u0[k])
-            predictions[i] = predicted[k]
+            initial_states[i] = (_row(q0, k), _row(u0, k))
+            predictions[i] = _row(predicted, k)
     r_obs = np.asarray(r_obs)
     r_continuity = np.asarray(r_all)[r_obs.size:]
     residual, noise, explains, closed = adequacy(
         problem.groups, r_obs, r_continuity,
-        flatten_latent(latent)[0].size - r_continuity.size,
+        sum(np.size(x) for x in jax.tree_util.tree_leaves(latent)) - r_continuity.size,
         _tolerance_of(problem))
     lack_of_fit = None
     if explains is False or closed is False:
@@ -204,3 +204,9 @@ def _lack_of_fit_message(residual, noise, explains, closed, r_continuity):
             f"{np.sqrt(np.mean(r_continuity**2)):.3g}): the fitted trajectory is not one "
             "solution of the equations. Raise max_steps, or the continuity_weight.")
     return "\n".join(lines)
+
+
+def _row(x, k):
+    """Row k of a stacked result, as a JAX array: through NumPy and a transfer (indexing the
+    JAX array compiles a program of its own in a process's first fit)."""
+    return jax.device_put(np.asarray(x)[k])

@@ -104,23 +104,26 @@ class Lagrangian(AbstractDynamics):
     def _lagrangian(self, t, q, qd, p):
         return self._kinetic(t, q, qd, p) - self._potential(t, q, p)
 
+    def _forces(self, t, q, qd, p):
+        """Q, the generalized forces the user gave."""
+        value = call(self.forces, "generalized forces Q", self.time_dependent, VELOCITY_ARGS,
+                     t, q, qd, p)
+        return vector(value, "generalized forces Q", qd.shape)
+
+    def _dissipation(self, t, q, qd, p):
+        """D, Rayleigh's dissipation function the user gave."""
+        value = call(self.dissipation, "dissipation function D", self.time_dependent,
+                     VELOCITY_ARGS, t, q, qd, p)
+        return scalar(value, "dissipation function D")
+
     def _nonconservative(self, t, q, qd, p):
         """Q − ∂D/∂q̇."""
-        # (No zero vector to start from: formed under the index check's compile-time
-        # evaluation, a constant compiles two small programs of its own.)
-        total = None
+        total = jnp.zeros_like(qd)
         if self.forces is not None:
-            value = call(self.forces, "generalized forces Q", self.time_dependent,
-                         VELOCITY_ARGS, t, q, qd, p)
-            total = vector(value, "generalized forces Q", qd.shape)
+            total = total + self._forces(t, q, qd, p)
         if self.dissipation is not None:
-            def dissipation(qd):
-                value = call(self.dissipation, "dissipation function D", self.time_dependent,
-                             VELOCITY_ARGS, t, q, qd, p)
-                return scalar(value, "dissipation function D")
-            rate = jax.grad(dissipation)(qd)
-            total = -rate if total is None else total - rate
-        return jnp.zeros_like(qd) if total is None else total
+            total = total - jax.grad(lambda qd: self._dissipation(t, q, qd, p))(qd)
+        return total
 
     def _check(self, t, q, qd):
         q = check_vector(q, "q")
@@ -140,16 +143,17 @@ class Lagrangian(AbstractDynamics):
         return u
 
     def user_functions(self, t, q, qd, p=None):
-        """(L, Q − ∂D/∂q̇) at one state; from a description, the description's callbacks."""
+        """(L, Q, D) at one state, Q and D where the user gave them; from a description, the
+        description's callbacks."""
         t, q, qd = self._check(t, q, qd)
         if isinstance(self.kinetic, _SystemQuantity):
             system = self.kinetic.system
             return system.user_functions(t, q, system.speeds_from_rates(t, q, qd, p), p)
-        # (Q − ∂D/∂q̇ only where the user gave either: the check evaluates constants at
-        # trace time, and a zero vector formed there compiles a program of its own)
-        applied = (self._nonconservative(t, q, qd, p)
-                   if self.forces is not None or self.dissipation is not None else None)
-        return self._lagrangian(t, q, qd, p), applied
+        # (The callbacks alone, no derivative and no zeros: the check evaluates what is
+        # constant at trace time, and each constant it forms compiles a program of its own.)
+        return (self._lagrangian(t, q, qd, p),
+                None if self.forces is None else self._forces(t, q, qd, p),
+                None if self.dissipation is None else self._dissipation(t, q, qd, p))
 
     def form_accelerations(self, t, q, qd, p=None, *, small):
         return accelerations_from_equations(self, t, q, qd, p, small=small)
