@@ -35,7 +35,6 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
 
 
-
 def promoted(result) -> RESULTS:
     """A solve's result code (diffrax's `RESULTS`, or already jaxdyn's) as a jaxdyn
     `RESULTS` member.
@@ -49,6 +48,7 @@ def promoted(result) -> RESULTS:
         return result
     member: Any = type(RESULTS.successful)  # equinox's EnumerationItem (an enum to a type checker)
     return member(result._value, RESULTS)
+
 
 class ConstraintRecord(eqx.Module):
     """Constraint quantities along a trajectory of a `jaxdyn.Constrained` formulation
