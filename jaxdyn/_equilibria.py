@@ -4,6 +4,7 @@ import functools
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -73,7 +74,10 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
     fixed = np.array(sorted(int(i) for i in prescribed), dtype=np.int32)
     if np.any((fixed < 0) | (fixed >= n)):
         raise ValueError(f"prescribed names coordinates {fixed.tolist()}, but there are {n}.")
-    values = jnp.asarray([prescribed[int(i)] for i in fixed], q.dtype)
+    values = [prescribed[int(i)] for i in fixed]
+    # (values at hand transferred: a conversion by JAX compiles a program of its own)
+    values = (jnp.asarray(values, q.dtype) if any(isinstance(v, jax.core.Tracer) for v in values)
+              else jax.device_put(np.asarray(values, q.dtype)))
     r = None if r is None else jnp.atleast_1d(jnp.asarray(r, q.dtype))
     eps = float(jnp.finfo(q.dtype).eps)
     rtol = float(np.sqrt(eps)) if rtol is None else rtol

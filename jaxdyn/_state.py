@@ -22,17 +22,16 @@ from ._errors import reports_state
 
 def as_float_array(x, name: str) -> jax.Array:
     """`x` as a floating-point array; integers are promoted to the default float dtype."""
-    if isinstance(x, np.ndarray) and jax_core.trace_state_clean():
-        # A transfer, with JAX's dtype canonicalisation: `jnp.asarray` of a NumPy array
-        # compiles a program of its own for each new shape and dtype (10-20 ms of a
-        # process's first `linearise`, `normal_modes`, ...). The same array and type.
-        x = jax.device_put(x)
-    x = jnp.asarray(x)
+    # A NumPy array or a list, outside any trace, is converted in NumPy and transferred (with
+    # JAX's dtype canonicalisation): a conversion by JAX compiles a program of its own for
+    # each shape and dtype, 10-20 ms of a process's first `linearise`, `normal_modes`, ...
+    at_hand = isinstance(x, (np.ndarray, list, tuple)) and jax_core.trace_state_clean()
+    x = np.asarray(x) if at_hand else jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.bool_):
         x = x.astype(jnp.result_type(float))
     elif not jnp.issubdtype(x.dtype, jnp.floating):
         raise ValueError(f"{name} must be a real floating-point array, got dtype {x.dtype}.")
-    return x
+    return jax.device_put(x) if at_hand else jnp.asarray(x)  # (asarray: the type, for a checker)
 
 
 def check_vector(x, name: str, size: int | None = None) -> jax.Array:
