@@ -15,7 +15,7 @@ from ._dynamics import AbstractDynamics, equations_of_motion
 from ._errors import error_if, reports_state
 from ._linalg import PIVOTED_LU_MAX, PivotedLU
 from ._form.controlled import find_controlled
-from ._state import check_vector, numbers_as_arrays
+from ._state import check_vector, numbers_as_arrays, transferred
 
 _NOT_FOUND = ("No equilibrium found: the solver stopped with the residual |u̇| (and |φ| for "
               "constraints) above the tolerance. Try another initial guess q, or check that "
@@ -75,9 +75,8 @@ def equilibrium(dynamics: AbstractDynamics, q, p=None, r=None, *, t=0.0, prescri
     if np.any((fixed < 0) | (fixed >= n)):
         raise ValueError(f"prescribed names coordinates {fixed.tolist()}, but there are {n}.")
     values = [prescribed[int(i)] for i in fixed]
-    # (values at hand transferred: a conversion by JAX compiles a program of its own)
     values = (jnp.asarray(values, q.dtype) if any(isinstance(v, jax.core.Tracer) for v in values)
-              else jax.device_put(np.asarray(values, q.dtype)))
+              else transferred(values, q.dtype))
     r = None if r is None else jnp.atleast_1d(jnp.asarray(r, q.dtype))
     eps = float(jnp.finfo(q.dtype).eps)
     rtol = float(np.sqrt(eps)) if rtol is None else rtol

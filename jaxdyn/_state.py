@@ -22,16 +22,22 @@ from ._errors import reports_state
 
 def as_float_array(x, name: str) -> jax.Array:
     """`x` as a floating-point array; integers are promoted to the default float dtype."""
-    # A NumPy array or a list, outside any trace, is converted in NumPy and transferred (with
-    # JAX's dtype canonicalisation): a conversion by JAX compiles a program of its own for
-    # each shape and dtype, 10-20 ms of a process's first `linearise`, `normal_modes`, ...
+    # (A NumPy array or a list, outside any trace: `transferred`)
     at_hand = isinstance(x, (np.ndarray, list, tuple)) and jax_core.trace_state_clean()
     x = np.asarray(x) if at_hand else jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.bool_):
         x = x.astype(jnp.result_type(float))
     elif not jnp.issubdtype(x.dtype, jnp.floating):
         raise ValueError(f"{name} must be a real floating-point array, got dtype {x.dtype}.")
-    return jax.device_put(x) if at_hand else jnp.asarray(x)  # (asarray: the type, for a checker)
+    return transferred(x) if at_hand else jnp.asarray(x)
+
+
+def transferred(x, dtype=None) -> jax.Array:
+    """`jnp.asarray(x, dtype)` for a value at hand (NumPy, Python numbers, concrete arrays):
+    converted by NumPy and transferred, with JAX's dtype canonicalisation. A conversion by
+    JAX compiles a program of its own for each shape and dtype, 10-40 ms of a process's first
+    call (`linearise`, `equilibrium`, `fit`, loading a URDF)."""
+    return jax.device_put(np.asarray(x, dtype))
 
 
 def check_vector(x, name: str, size: int | None = None) -> jax.Array:
@@ -163,7 +169,7 @@ def _device_scalar(value, sign, dtype):
     # A transfer of the NumPy value, not `jnp.asarray` (a conversion XLA compiles, ~5 ms in a
     # new process).
     with jax.ensure_compile_time_eval():
-        return jax.device_put(np.asarray(value, dtype))
+        return transferred(value, dtype)
 
 
 FLOAT32_BY_DEFAULT = (

@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex
 
+from ._state import transferred
+
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
     "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
     "neg": np.negative, "max": np.maximum, "min": np.minimum, "abs": np.abs,
@@ -301,11 +303,8 @@ def _fold(primitive, name, params, xs, dtypes, out_dtype):
     if name in _EXACT_INEXACT and np.issubdtype(out_dtype, np.inexact):
         with np.errstate(all="ignore"):
             return _constant(_EXACT_INEXACT[name](*xs), out_dtype)
-    # (The operands transferred, not converted by `jnp.asarray`: a conversion compiles a
-    # program of its own, once per dtype, in a process's first trace.)
-    with jax.ensure_compile_time_eval():
-        value = primitive.bind(*[jax.device_put(np.asarray(x, d)) for x, d in zip(xs, dtypes)],
-                               **params)
+    with jax.ensure_compile_time_eval():  # (`transferred`: no program to convert operands)
+        value = primitive.bind(*[transferred(x, d) for x, d in zip(xs, dtypes)], **params)
     return _constant(np.asarray(value), out_dtype)
 
 

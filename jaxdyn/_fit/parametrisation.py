@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._state import transferred
+
 
 class AbstractParametrisation(eqx.Module):
     """How a parameter leaf x is represented by unconstrained latent variables z."""
@@ -53,9 +55,9 @@ class Positive(AbstractParametrisation):
             raise ValueError(f"{name} is parametrised as positive but its initial value is "
                              f"{np.asarray(x).tolist()}. Start it positive, or pass "
                              "jaxdyn.Unconstrained() for it in `parametrisation`.")
-        # (x is a value here: NumPy's logarithm and a transfer, where `jnp.log` would compile a
-        # program of its own in a process's first fit)
-        return jax.device_put(np.log(np.asarray(x)))
+        # (x is a value here: NumPy's logarithm, where `jnp.log` would compile a program of
+        # its own in a process's first fit)
+        return transferred(np.log(np.asarray(x)))
 
     def to_physical(self, z):
         return jnp.exp(z)

@@ -12,7 +12,7 @@ import optax
 import optimistix as optx
 
 from .._dynamics import AbstractDynamics
-from .._state import numbers_as_arrays
+from .._state import numbers_as_arrays, transferred
 from .experiment import Experiment, MultipleShooting
 from .parametrisation import leaf_parametrisations
 from .residuals import (
@@ -100,8 +100,7 @@ def _problem(dynamics, experiments, params, dtype, filter_spec, parametrisation,
              fit_initial_states, shooting, simulate_options, adjoint, horizons=None):
     """The `TrajectoryMatching` problem (in precision `dtype`) and the latent starting
     point."""
-    # (Python floats transferred, not converted: a conversion compiles a program of its own)
-    params = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x, dtype))
+    params = jax.tree_util.tree_map(lambda x: transferred(x, dtype)
                                     if isinstance(x, float) else x, params)
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         if eqx.is_inexact_array(leaf) and not np.all(np.isfinite(np.asarray(leaf))):

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._state import numbers_as_arrays
+from .._state import numbers_as_arrays, transferred
 from .adequacy import adequacy
 from .residuals import (
     TrajectoryMatching,
@@ -207,6 +207,6 @@ def _lack_of_fit_message(residual, noise, explains, closed, r_continuity):
 
 
 def _row(x, k):
-    """Row k of a stacked result, as a JAX array: through NumPy and a transfer (indexing the
-    JAX array compiles a program of its own in a process's first fit)."""
-    return jax.device_put(np.asarray(x)[k])
+    """Row k of a stacked result (indexing the JAX array would compile a program of its own
+    in a process's first fit)."""
+    return transferred(np.asarray(x)[k])

@@ -8,9 +8,9 @@ Mimic joints are imported as independent joints (as Pinocchio does by default).
 
 from typing import Any
 
-import jax
 import numpy as np
 
+from .._state import transferred
 from .joints import Fixed, Free, Planar, Prismatic, Revolute
 from .links import Link, LinkParameter
 from .tree import RigidBodyTree
@@ -91,13 +91,11 @@ def from_urdf(path, *, floating: bool = False, gravity=(0.0, 0.0, -9.81),
         inertial: dict[str, Any] = {k: LinkParameter(name, k) if parameters else v
                                     for k, v in values[name].items()}
         if not parameters:
-            inertial.update(com=tuple(com), inertia=jax.device_put(np.asarray(inertia)))
+            inertial.update(com=tuple(com), inertia=transferred(inertia))
         tree_links.append(Link(name, joint, parent=parent, translation=translation,
                                rotation=rotation, **inertial))
-    # (NumPy's values transferred: a conversion by JAX compiles a program of its own)
-    p = {name: {k: jax.device_put(np.asarray(v)) for k, v in d.items()}
-         for name, d in values.items()}
-    tree = RigidBodyTree(tree_links, gravity=jax.device_put(np.asarray(gravity, dtype=float)))
+    p = {name: {k: transferred(v) for k, v in d.items()} for name, d in values.items()}
+    tree = RigidBodyTree(tree_links, gravity=transferred(gravity, float))
     return tree, (p if parameters else None)
 
 
