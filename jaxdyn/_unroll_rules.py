@@ -33,7 +33,7 @@ _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (
     "not": np.invert, "xor": np.bitwise_xor, "square": np.square, "floor": np.floor,
     "ceil": np.ceil, "sign": np.sign, "copy": lambda x: x, "copy_p": lambda x: x,
 }
-# Correctly rounded in IEEE arithmetic on floating-point operands, as XLA computes them
+# Correctly rounded in IEEE arithmetic on real floating-point operands, as XLA computes them
 # (integer division truncates in XLA, not in NumPy).
 _EXACT_INEXACT = {"div": np.divide, "sqrt": np.sqrt}
 _ELEMENTWISE = set(_EXACT) | {
@@ -300,7 +300,7 @@ def _fold(primitive, name, params, xs, dtypes, out_dtype):
     if name == "integer_pow":
         with np.errstate(all="ignore"):
             return _constant(xs[0] ** params["y"], out_dtype)
-    if name in _EXACT_INEXACT and np.issubdtype(out_dtype, np.inexact):
+    if name in _EXACT_INEXACT and np.issubdtype(out_dtype, np.floating):  # (not complex)
         with np.errstate(all="ignore"):
             return _constant(_EXACT_INEXACT[name](*xs), out_dtype)
     with jax.ensure_compile_time_eval():  # (`transferred`: no program to convert operands)
