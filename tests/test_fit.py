@@ -463,6 +463,57 @@ def test_fit_gradient_matches_finite_differences(oscillator_fit):
     np.testing.assert_allclose(gauss_newton, gradient, rtol=1e-9)
 
 
+def test_what_the_optimiser_is_given_has_the_traced_shapes_and_derivatives():
+    """The residual functions a fit hands the optimiser, on two groups of experiments with
+    fitted initial states and multiple shooting: the shapes the optimiser's state is built
+    from without tracing the simulations equal those JAX traces (and in a float32 fit); the
+    forward-mode derivative of the residuals and of the predictions (the auxiliary output
+    that the fit's result keeps) equals JAX's own differentiation of the simulations and a
+    central difference along a direction."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxdyn._fit import residuals
+    from jaxdyn._fit.problem import _setup_with
+
+    options = dict(filter_spec=OSCILLATOR_TRAINED, parametrisation=None, observe=None,
+                   fit_initial_states=True, shooting=jaxdyn.MultipleShooting(4),
+                   optimiser=None, rtol=1e-8, atol=1e-8, adjoint=None,
+                   simulate_options={"rtol": 1e-12, "atol": 1e-12},
+                   identifiability_tolerance=None)
+    experiments = [oscillator_experiment(num=41), oscillator_experiment(x0=0.5, num=61, seed=1)]
+    float32 = {key: jnp.asarray(value, jnp.float32) for key, value in OSCILLATOR_GUESS.items()}
+    for guess, shooting in ((OSCILLATOR_GUESS, options["shooting"]), (float32, None)):
+        problem, latent, *_ = _setup_with(OSCILLATOR, experiments, guess,
+                                          {**options, "shooting": shooting})
+        for fn in (residuals.least_squares_residuals, residuals.least_squares_residuals_forward,
+                   residuals.scalar_loss):
+            assert residuals.output_structure(fn, problem, latent) == eqx.filter_eval_shape(
+                fn, latent, problem), (fn.__name__, shooting)
+
+    problem, latent, *_ = _setup_with(OSCILLATOR, experiments, OSCILLATOR_GUESS, options)
+    flat, unravel = ravel_pytree(latent)
+    direction = jnp.asarray(np.random.default_rng(2).standard_normal(flat.size))
+
+    def forward(f):  # r and the predictions, through the residual function's own derivative
+        r, (_, predictions) = residuals.least_squares_residuals_forward(unravel(f), problem)
+        return jnp.concatenate([r, *[x.ravel() for x in predictions]])
+
+    def by_jax(f):  # the same values, differentiated by JAX through the simulations
+        predictions, r, _ = problem.evaluate(unravel(f))
+        return jnp.concatenate([r, *[x.ravel() for x in predictions]])
+
+    @jax.jit
+    def both(f):
+        return jax.jvp(forward, (f,), (direction,)), jax.jvp(by_jax, (f,), (direction,))
+
+    (value, derivative), (value_by_jax, derivative_by_jax) = both(flat)
+    np.testing.assert_allclose(value, value_by_jax, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(derivative, derivative_by_jax, rtol=1e-10, atol=1e-10)
+    h = 1e-5
+    difference = (both(flat + h * direction)[1][0] - both(flat - h * direction)[1][0]) / (2 * h)
+    np.testing.assert_allclose(derivative, difference, rtol=1e-6, atol=1e-7)
+
+
 def test_nan_gradient_stops_with_step_and_parameter():
     def V(q, p):
         # A stiffness correction √(c − 1) that vanishes at c = 1, where its derivative is

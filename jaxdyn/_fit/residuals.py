@@ -206,6 +206,11 @@ class TrajectoryMatching(eqx.Module):
             if group.ts.shape[1] > LONG_RECORD:
                 predicted, gaps = jax.lax.map(
                     lambda x: self._segments(x[0], params, *x[1:]), per_experiment)
+            elif group.ts.shape[0] == 1:  # no vmap of one: it would batch the simulation again
+                ts, q0, u0, inputs, nodes = jax.tree_util.tree_map(lambda x: x[0],
+                                                                   per_experiment)
+                predicted, gaps = jax.tree_util.tree_map(
+                    lambda x: x[None], self._segments(ts, params, q0, u0, inputs, nodes))
             else:
                 predicted, gaps = jax.vmap(self._segments, in_axes=(0, None, 0, 0, 0, 0))(
                     group.ts, params, q0, u0, group.inputs, nodes)
@@ -222,6 +227,7 @@ class TrajectoryMatching(eqx.Module):
                     f"observe returns {predicted.shape[-1]} values per sample but the "
                     f"observations have {group.observations.shape[-1]} (experiments "
                     f"{list(group.indices)}).")
+            predicted = predicted.astype(group.observations.dtype)  # (evaluation_structure)
             predictions.append(predicted)
             observation.append((group.sqrt_weights * (predicted - group.observations)).ravel())
             if gaps is not None:
@@ -229,15 +235,30 @@ class TrajectoryMatching(eqx.Module):
         observation = jnp.concatenate(observation)
         return predictions, jnp.concatenate([observation, *continuity]), observation
 
+    def evaluation_structure(self, z):
+        """(per group the predicted observations, r) as `jax.ShapeDtypeStruct`s, as `evaluate`
+        returns them, from the shapes of the data and of z: tracing `evaluate` for its
+        shapes would trace every simulation once more."""
+        predictions = [jax.ShapeDtypeStruct(g.observations.shape, g.observations.dtype)
+                       for g in self.groups]
+        # r: the observation residuals, then the continuity gaps, one per node coordinate.
+        size = sum(g.observations.size for g in self.groups) + sum(
+            x.size for x in jax.tree_util.tree_leaves(z["nodes"]))
+        dtype = jnp.result_type(*[g.observations.dtype for g in self.groups])
+        return predictions, jax.ShapeDtypeStruct((size,), dtype)
+
     def residuals(self, z):
         """(r, observation residuals alone): r as one vector."""
         return self.evaluate(z)[1:]
 
 
 def least_squares_residuals(z, problem: TrajectoryMatching):
-    """r(z) for a least-squares solver, with ½‖r_observations‖² as auxiliary output."""
-    residuals, observation = problem.residuals(z)
-    return residuals, 0.5 * jnp.sum(observation**2)
+    """r(z) for a least-squares solver, with (½‖r_observations‖², the predicted observations
+    per group) as auxiliary output. A Gauss–Newton-type solver keeps the auxiliary output of
+    its accepted iterate in its state, so the fit's predictions need no simulation of their
+    own afterwards."""
+    predictions, residuals, observation = problem.evaluate(z)
+    return residuals, (0.5 * jnp.sum(observation**2), predictions)
 
 
 def least_squares_residuals_forward(z, problem: TrajectoryMatching):
@@ -249,33 +270,56 @@ def least_squares_residuals_forward(z, problem: TrajectoryMatching):
     would cost about a pass of the tangent simulation, each application of J a matrix
     product."""
     flat, unravel = ravel_pytree(z)
-    residuals, observation = _materialised(problem, flat, unravel)
-    return residuals, 0.5 * jnp.sum(observation**2)
+    residuals, observation, predictions = _materialised(problem, flat, unravel)
+    return residuals, (0.5 * jnp.sum(observation**2), predictions)
 
 
 def _materialised(problem, flat, unravel):
-    """(r, r_obs) at the flat latent vector, differentiated through the whole Jacobian."""
+    """(r, r_obs, the predictions per group) at the flat latent vector, differentiated
+    through the whole Jacobian."""
 
     @jax.custom_jvp
-    def residuals(f):
-        return batch_axis_first(problem.residuals(unravel(f)))
+    def evaluated(f):
+        predictions, r, observation = problem.evaluate(unravel(f))
+        return batch_axis_first((r, observation, predictions))
 
-    def r_with_values(f):  # r to differentiate, and both outputs' values from the same pass
-        r, observation = problem.residuals(unravel(f))
-        return r, (r, observation)
-
-    @residuals.defjvp
-    def residuals_jvp(primals, tangents):
+    @evaluated.defjvp
+    def evaluated_jvp(primals, tangents):
         (f,), (df,) = primals, tangents
-        jacobian, (r, observation) = jax.jacfwd(r_with_values, has_aux=True)(f)
+        (jacobian, jacobian_predictions), values = _jacobian(problem, unravel(f))
         dr = jacobian @ df
         # r_obs is the leading block of r: its tangent is the leading block of dr.
-        return batch_axis_first(((r, observation), (dr, dr[:observation.size])))
+        return batch_axis_first((values, (dr, dr[:values[1].size],
+                                          [j @ df for j in jacobian_predictions])))
 
-    return residuals(flat)
+    return evaluated(flat)
+
+
+@eqx.filter_jit
+def _jacobian(problem: TrajectoryMatching, z):
+    """((∂r/∂f, ∂predictions/∂f), (r, r_obs, predictions)) at z, f = z raveled, by forward
+    mode. Jitted, so that JAX traces it once per problem: an optimiser traces the
+    linearisation of the residuals when it starts (for its state's shapes) and again in its
+    step."""
+    f, unravel = ravel_pytree(z)
+
+    def differentiated(f):  # what is differentiated, and every value, from the same pass
+        predictions, r, observation = problem.evaluate(unravel(f))
+        return (r, predictions), (r, observation, predictions)
+
+    return jax.jacfwd(differentiated, has_aux=True)(f)
+
+
+def output_structure(fn, problem: TrajectoryMatching, z):
+    """(output, auxiliary output) of `fn(z, problem)`, one of the functions of this module,
+    as `jax.ShapeDtypeStruct`s (`TrajectoryMatching.evaluation_structure`)."""
+    predictions, r = problem.evaluation_structure(z)
+    loss = jax.ShapeDtypeStruct((), r.dtype)
+    return (loss if fn is scalar_loss else r), (loss, predictions)
 
 
 def scalar_loss(z, problem: TrajectoryMatching):
-    """½‖r(z)‖² for a minimiser (optax, BFGS), with ½‖r_observations‖² as auxiliary output."""
-    residuals, observation = problem.residuals(z)
-    return 0.5 * jnp.sum(residuals**2), 0.5 * jnp.sum(observation**2)
+    """½‖r(z)‖² for a minimiser (optax, BFGS), with auxiliary output as
+    `least_squares_residuals`'."""
+    predictions, residuals, observation = problem.evaluate(z)
+    return 0.5 * jnp.sum(residuals**2), (0.5 * jnp.sum(observation**2), predictions)

@@ -15,7 +15,7 @@ from .adequacy import adequacy
 from .residuals import (
     TrajectoryMatching,
 )
-from .uncertainty import Uncertainty, analyse, parameter_names
+from .uncertainty import Uncertainty, analyse, kept_evaluation, parameter_names
 from .problem import _evaluate, fit_dtype
 
 
@@ -149,6 +149,10 @@ def _result(problem, latent, state, history, converged, iteration, uncertainty, 
     if uncertainty:
         report, predicted_groups, loss, (r_all, r_obs) = analyse(problem, latent, tolerance,
                                                                  state)
+    elif (kept := kept_evaluation(problem, state, latent)) is not None:
+        report = None
+        _, r_all, r_obs, predicted_groups = kept
+        loss = 0.5 * np.sum(r_obs**2)
     else:
         report = None
         predicted_groups, loss, r_all, r_obs = _evaluate(problem, latent)

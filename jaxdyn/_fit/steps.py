@@ -18,9 +18,7 @@ import tqdm
 
 from .._errors import _where
 from .experiment import Experiment
-from .residuals import (
-    scalar_loss,
-)
+from .residuals import output_structure, scalar_loss
 from .uncertainty import flatten_latent, latent_names
 from .problem import _setup, _strongly_typed
 from .result import _result
@@ -50,13 +48,13 @@ def _in_precision(state, latent):
 
 @eqx.filter_jit
 def _init(solver, fn, latent, problem, options):
-    f_struct, aux_struct = jax.eval_shape(lambda z: fn(z, problem), latent)
+    f_struct, aux_struct = output_structure(fn, problem, latent)
     return _in_precision(solver.init(fn, latent, problem, options, f_struct, aux_struct,
                                      frozenset()), latent)
 
 
 def _step(solver, fn, latent, problem, options, state):
-    latent, state, loss = solver.step(fn, latent, problem, options, state, frozenset())
+    latent, state, (loss, _) = solver.step(fn, latent, problem, options, state, frozenset())
     state = _in_precision(state, latent)
     done, _ = solver.terminate(fn, latent, problem, options, state, frozenset())
     # The accepted iterate and (least-squares solvers) the next trial point: a non-finite

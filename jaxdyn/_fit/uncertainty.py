@@ -104,11 +104,11 @@ def _linearisation(problem: TrajectoryMatching, z):
 
 
 @eqx.filter_jit
-def _from_solver(problem: TrajectoryMatching, z, jac, residual):
-    """`_linearisation`'s outputs from a least-squares solver's last linearisation at z: J
+def _from_solver(problem: TrajectoryMatching, z, jac):
+    """(J, G) of `_linearisation` from a least-squares solver's last linearisation at z: J
     materialised from the linear operator the solver formed (a matrix product: its Jacobian
     is already a residual of that linearisation, so it is not compiled a second time),
-    columns in the order of `flatten_latent`; the predictions from one forward evaluation."""
+    columns in the order of `flatten_latent`."""
     matrix = jac.as_matrix()  # columns in the order of ravel_pytree(z)
     flat_z, unravel_z = ravel_pytree(z)
     position = jnp.arange(flat_z.size, dtype=flat_z.dtype)
@@ -117,36 +117,40 @@ def _from_solver(problem: TrajectoryMatching, z, jac, residual):
     physical = lambda f: ravel_pytree(problem.trained_leaves(  # noqa: E731
         problem.params(unravel(f)["params"])))[0]
     num_params = ravel_pytree(z["params"])[0].size
-    predictions, _, r_obs = problem.evaluate(z)
-    return (matrix[:, order], residual, r_obs, jax.jacfwd(physical)(flat)[:, :num_params],
-            predictions)
+    return matrix[:, order], jax.jacfwd(physical)(flat)[:, :num_params]
 
 
-def _solver_linearisation(state, z):
-    """(J operator, r) at z from a Gauss–Newton-type solver's state (optimistix keeps the
-    linearisation at its accepted iterate, which is the iterate it returns), or None."""
-    f_info = getattr(state, "f_info", None)
-    if f_info is None or bool(np.asarray(getattr(state, "first_step", True))):
+def kept_evaluation(problem: TrajectoryMatching, state, z):
+    """(J operator, r, r_obs, per group the predicted observations) at z, as a
+    Gauss–Newton-type solver's state keeps them (optimistix keeps the linearisation and the
+    residual function's auxiliary output of its accepted iterate, which is the iterate it
+    returns), or None (another solver, or no step taken)."""
+    f_info, aux = getattr(state, "f_info", None), getattr(state, "aux", None)
+    if f_info is None or aux is None or bool(np.asarray(getattr(state, "first_step", True))):
         return None  # no step taken: the state holds a placeholder, not a linearisation
     jac, residual = getattr(f_info, "jac", None), getattr(f_info, "residual", None)
     if not isinstance(jac, lx.AbstractLinearOperator) or residual is None:
         return None
     if jax.tree_util.tree_structure(jac.in_structure()) != jax.tree_util.tree_structure(z):
         return None
-    return jac, residual
+    residual = np.asarray(residual)
+    num_observations = sum(group.observations.size for group in problem.groups)
+    # The observation residuals are r's leading block (`TrajectoryMatching.evaluate`).
+    return jac, residual, residual[:num_observations], aux[1]
 
 
 def analyse(problem: TrajectoryMatching, z, tolerance: float, state=None):
     """(the Gauss–Newton `Uncertainty` of the fit at z (forward-mode Jacobian), per group the
     predicted observations, ½‖r_obs‖², the residuals (r, r_obs)): one compiled evaluation,
-    reusing the Jacobian of the least-squares solver's last step when `state` (its final state)
-    holds one."""
-    linearised = None if state is None else _solver_linearisation(state, z)
-    if linearised is None:
+    or none where `state` (a least-squares solver's final state) keeps the evaluation at z
+    (`kept_evaluation`)."""
+    kept = None if state is None else kept_evaluation(problem, state, z)
+    if kept is None:
         *arrays, predictions = _linearisation(problem, z)
+        jacobian, r_all, r_obs, g = (np.asarray(x) for x in arrays)
     else:
-        *arrays, predictions = _from_solver(problem, z, *linearised)
-    jacobian, r_all, r_obs, g = (np.asarray(x) for x in arrays)
+        jac, r_all, r_obs, predictions = kept
+        jacobian, g = (np.asarray(x) for x in _from_solver(problem, z, jac))
     num_observations = int(sum(np.count_nonzero(np.asarray(group.sqrt_weights))
                                for group in problem.groups))
     num_continuity = r_all.size - r_obs.size
