@@ -21,7 +21,7 @@ import numpy as np
 from jax._src import core as jax_core
 
 from . import _xla
-from ._errors import checks_read_on_host
+from ._errors import checks_as_nan_active, checks_read_on_host
 
 
 def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
@@ -34,8 +34,9 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
     program with the checks run, to raise its message. Under a trace, the checks stay inside.
 
     The cache key is the arguments' tree structure, their non-array leaves (hashed: functions
-    by identity, modules and numbers by value), the shapes and dtypes of their arrays and
-    JAX's `jax_disable_most_optimizations`.
+    by identity, modules and numbers by value), the shapes and dtypes of their arrays, JAX's
+    `jax_disable_most_optimizations` and whether checks are traced as NaN
+    (`jaxdyn._errors.checks_as_nan`).
     Arguments with an unhashable non-array leaf take `eqx.filter_jit`'s own path. Under an
     outer trace (`jax.jit`, `vmap`, `grad`) both are the same inlined call.
     """
@@ -58,14 +59,15 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
 
         return on_host
 
-    def under_setting(fast_compile, *args):  # (the switch a static argument, for the cache)
+    def under_setting(settings, *args):  # (the switches a static argument, for the cache)
         return fn(*args)
 
     under_setting.__name__ = under_setting.__qualname__ = getattr(fn, "__name__", "fn")
     by_setting = eqx.filter_jit(under_setting)
 
     def fallback(*args):
-        return by_setting(jax.config.read("jax_disable_most_optimizations"), *args)
+        return by_setting((jax.config.read("jax_disable_most_optimizations"),
+                           checks_as_nan_active()), *args)
 
     cache: dict = {}
 
@@ -83,7 +85,7 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
             # (with JAX's switch for compile time over run time, under which jaxdyn also
             # traces other forms of some programs: `jaxdyn._integrate.simulate._stepper`)
             key = (treedef, static, tuple((x.shape, x.dtype) for x in arrays),
-                   jax.config.read("jax_disable_most_optimizations"))
+                   jax.config.read("jax_disable_most_optimizations"), checks_as_nan_active())
             entry = cache.get(key)
         except TypeError:  # an unhashable option
             return fallback(*args)

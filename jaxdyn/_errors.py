@@ -83,6 +83,33 @@ def library_checks_as_nan():
         module.EQX_ON_ERROR = previous
 
 
+# Whether `error_if` turns its value into NaN on failure instead of calling the host
+# (`checks_as_nan`).
+_as_nan: list[bool] = []
+
+
+@contextlib.contextmanager
+def checks_as_nan():
+    """`error_if` traced as NaN in its value where a check fails, at any level of the trace,
+    instead of a branch to the host; with `library_checks_as_nan` for equinox's. For a
+    program called with values that holds no host callback (JAX's persistent compilation
+    cache keeps only such programs), whose caller reads a non-finite result as a failure and
+    then runs the checked program from the same inputs for the check's message."""
+    _as_nan.append(True)
+    try:
+        with library_checks_as_nan():
+            yield
+    finally:
+        _as_nan.pop()
+
+
+def checks_as_nan_active() -> bool:
+    """Whether `error_if` is traced as NaN here (`checks_as_nan`): part of the key of every
+    jitted function whose trace holds checks, so that a trace cached under one setting is not
+    reused under the other."""
+    return bool(_as_nan)
+
+
 UNEXPLAINED_FAILURE = (
     "The result is not finite (NaN or inf), and none of the causes checked for holds here:\n"
     "{}\nThis should not happen: please report it, with the state below, to jaxdyn's issue "
@@ -117,6 +144,12 @@ def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=N
     if _read_on_host and _read_on_host[-1][0] is jax_core.unsafe_get_current_trace():
         _read_on_host[-1][1].append(jnp.asarray(failed))
         return x
+    if _as_nan:
+        # (any member's failure under vmap: x stays unbatched, as below)
+        failed = eqxi.unvmap_any(failed)
+        return jax.tree_util.tree_map(
+            lambda a: jnp.where(failed, jnp.nan, a) if jnp.issubdtype(a.dtype, jnp.inexact)
+            else a, x)
     described = state if callable(state) else lambda: state
 
     def fail():

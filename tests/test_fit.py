@@ -811,6 +811,10 @@ def test_errors_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="observe returns 2 values per sample but the "
                                          "observations have 1"):
         fit_oscillator(experiment, observe=lambda t, q, u, p: jnp.concatenate([q, u]))
+    # Checked inside the simulations (the tolerances are traced in a fit's step), named by
+    # the step's checked program.
+    with pytest.raises(RuntimeError, match="At step 1 of the fit: rtol and atol must be"):
+        jaxdyn.fit(OSCILLATOR, experiment, OSCILLATOR_GUESS, simulate_options={"rtol": -1e-8})
     with pytest.raises(ValueError, match="optimiser must be"):
         fit_oscillator(experiment, optimiser="adam")
     path = tmp_path / "other.eqx"

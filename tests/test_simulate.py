@@ -478,10 +478,11 @@ def test_a_weakly_typed_parameter_in_a_callers_jit_traces_the_equations_once():
     assert counted(1.0) == counted(np.float64(1.0)) > 0
 
 def test_programs_called_with_values_are_kept_by_the_persistent_compilation_cache(tmp_path):
-    """Called with values, `simulate`, `accelerations`, `linearise`, `normal_modes` and
-    `equilibrium` compile programs without host callbacks (their checks are read on the
-    host), which JAX's persistent compilation cache keeps: a second process compiles none of
-    them again. And the first process compiles no tiny program of jaxdyn's own besides them
+    """Called with values, `simulate`, `accelerations`, `linearise`, `normal_modes`,
+    `equilibrium` and `fit` compile programs without host callbacks (their checks are read
+    on the host, or in a fit's step traced as NaN, which sends the step to its checked
+    program), which JAX's persistent compilation cache keeps: a second process compiles
+    none of them again. And the first process compiles no tiny program of jaxdyn's own besides them
     (an eager JAX operation on a value at hand, 10-40 ms each: a conversion, a look-up in a
     table); those of diffrax and optimistix are theirs."""
     script = textwrap.dedent(f"""
@@ -522,10 +523,14 @@ def test_programs_called_with_values_are_kept_by_the_persistent_compilation_cach
         jaxdyn.linearise(plant, 0.0, q, u, p)
         jaxdyn.normal_modes(pendulum, 0.0, np.zeros(1), p)
         jaxdyn.equilibrium(plant, q, p, prescribed={{0: 0.3}})
+        own_before_fit = list(own)
+        ts = np.linspace(0.0, 2.0, 21)
+        jaxdyn.fit(pendulum, jaxdyn.Experiment(ts, 0.3 * np.cos(3.1 * ts), q, u), {{"g": 9.0}},
+                   progress=False)
         print(json.dumps({{
             "requests": events["/jax/compilation_cache/compile_requests_use_cache"],
             "hits": events["/jax/compilation_cache/cache_hits"],
-            "misses": events["/jax/compilation_cache/cache_misses"], "own": own}}))
+            "misses": events["/jax/compilation_cache/cache_misses"], "own": own_before_fit}}))
     """)
 
     def run():

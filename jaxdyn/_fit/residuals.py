@@ -17,6 +17,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .._custom_jvp import batch_axis_first
+from .._errors import checks_as_nan_active
 from .._dynamics import AbstractDynamics
 from .._integrate import simulate
 from .experiment import Experiment, MultipleShooting
@@ -286,7 +287,8 @@ def _materialised(problem, flat, unravel):
     @evaluated.defjvp
     def evaluated_jvp(primals, tangents):
         (f,), (df,) = primals, tangents
-        (jacobian, jacobian_predictions), values = _jacobian(problem, unravel(f))
+        (jacobian, jacobian_predictions), values = _jacobian(problem, unravel(f),
+                                                             checks_as_nan_active())
         dr = jacobian @ df
         # r_obs is the leading block of r: its tangent is the leading block of dr.
         return batch_axis_first((values, (dr, dr[:values[1].size],
@@ -296,11 +298,12 @@ def _materialised(problem, flat, unravel):
 
 
 @eqx.filter_jit
-def _jacobian(problem: TrajectoryMatching, z):
+def _jacobian(problem: TrajectoryMatching, z, checks_as_nan: bool):
     """((∂r/∂f, ∂predictions/∂f), (r, r_obs, predictions)) at z, f = z raveled, by forward
     mode. Jitted, so that JAX traces it once per problem: an optimiser traces the
     linearisation of the residuals when it starts (for its state's shapes) and again in its
-    step."""
+    step. `checks_as_nan`: the setting it is traced under (`jaxdyn._errors.checks_as_nan`),
+    a static argument so that the two forms are cached apart."""
     f, unravel = ravel_pytree(z)
 
     def differentiated(f):  # what is differentiated, and every value, from the same pass

@@ -3,6 +3,7 @@ from Python one compiled step at a time, so that between steps a progress bar, a
 check for non-finite values and a checkpoint cost nothing on the device; and horizon
 continuation, a sequence of such fits over growing records."""
 
+import contextlib
 import functools
 import os
 import sys
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import tqdm
 
-from .._errors import _where
+from .._errors import _where, checks_as_nan
 from .experiment import Experiment
 from .residuals import output_structure, scalar_loss
 from .uncertainty import flatten_latent, latent_names
@@ -49,8 +50,10 @@ def _in_precision(state, latent):
 @eqx.filter_jit
 def _init(solver, fn, latent, problem, options):
     f_struct, aux_struct = output_structure(fn, problem, latent)
-    return _in_precision(solver.init(fn, latent, problem, options, f_struct, aux_struct,
-                                     frozenset()), latent)
+    # (traced as the lean step is, `_compiled_step_for`, which then reuses what it traced)
+    with checks_as_nan():
+        return _in_precision(solver.init(fn, latent, problem, options, f_struct, aux_struct,
+                                         frozenset()), latent)
 
 
 def _step(solver, fn, latent, problem, options, state):
@@ -66,25 +69,31 @@ def _step(solver, fn, latent, problem, options, state):
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_step_for(solver_static, fn):
+def _compiled_step_for(solver_static, fn, lean):
     """`_step` compiled with the solver's static part closed over, found once per fit.
 
     A jitted function hashes its static arguments on every call; optimistix wraps an optax
     optimiser's closures in objects whose hash reads their source code (about 10 ms a step,
     more than a small problem's gradient). Keyed by that static part, the lookup is paid once
-    per fit, and fits with equal solvers share the compiled step."""
+    per fit, and fits with equal solvers share the compiled step.
+
+    `lean`: the checks inside the simulations (their tolerances, save times) give NaN on
+    failure instead of calling the host, so that the program holds no host callback and
+    JAX's persistent compilation cache keeps it; a step whose result is not finite is run
+    again as the checked program (`lean` False), which names a failed check."""
 
     @eqx.filter_jit
     def step(solver_arrays, latent, problem, options, state):
         solver = eqx.combine(solver_arrays, solver_static)
-        return _step(solver, fn, latent, problem, options, state)
+        with checks_as_nan() if lean else contextlib.nullcontext():
+            return _step(solver, fn, latent, problem, options, state)
 
     return step
 
 
-def _compiled_step(solver, fn):
+def _compiled_step(solver, fn, lean=True):
     arrays, static = eqx.partition(solver, eqx.is_array)
-    return functools.partial(_compiled_step_for(static, fn), arrays)
+    return functools.partial(_compiled_step_for(static, fn, lean), arrays)
 
 
 def _terminated(solver, fn, latent, problem, options, state):
@@ -151,11 +160,15 @@ def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation
     stopped = False
     try:
         while not done and iteration < max_steps:
-            previous = latent
+            previous, previous_state = latent, state
             try:
                 latent, state, loss, done, finite = step(latent, problem, options, state)
                 loss, done, finite = jax.device_get((loss, done, finite))  # one sync per step
                 done = bool(done)
+                if not (finite and np.isfinite(loss)):
+                    # A failed check inside the simulations raises from the checked step.
+                    _compiled_step(solver, fn, lean=False)(previous, problem, options,
+                                                           previous_state)
             except Exception as error:
                 if not _where:
                     raise
