@@ -182,11 +182,19 @@ def test_a_fit_stopped_in_a_local_minimum_says_so_and_continuation_finds_the_tru
     # σ = 1e-3 estimated from the data alone, to 20 %.
     assert 0.8e-3 < np.sqrt(trapped.noise_variance) < 1.2e-3
 
-    found = jaxdyn.fit(system, experiments, guess, **options)  # no warning: data explained
-    assert found.strategy == "horizon continuation" and found.explains_data
-    np.testing.assert_allclose(float(found.params["k"]), ELASTIC_TRUTH["k"], rtol=2e-3)
-    np.testing.assert_allclose(float(found.params["l0"]), ELASTIC_TRUTH["l0"], rtol=2e-3)
-    assert found.loss < 1e-3 * trapped.loss
+    # No warning: the data are explained, also where the direct fit, replaced, ran out of
+    # steps on its way down the valley.
+    for max_steps in (200, trapped.num_steps - 1):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            found = jaxdyn.fit(system, experiments, guess, max_steps=max_steps, **options)
+        assert found.strategy == "horizon continuation" and found.explains_data
+        np.testing.assert_allclose(float(found.params["k"]), ELASTIC_TRUTH["k"], rtol=2e-3)
+        np.testing.assert_allclose(float(found.params["l0"]), ELASTIC_TRUTH["l0"], rtol=2e-3)
+        assert found.loss < 1e-3 * trapped.loss
+    # A direct fit that runs out of steps and is returned still says so.
+    with pytest.warns(RuntimeWarning, match="did not converge in max_steps = 3 steps"):
+        jaxdyn.fit(system, experiments, guess, globalisation=False, max_steps=3, **options)
 
 
 def test_multiple_shooting_with_partial_observations_from_a_short_horizon_fit():

@@ -14,7 +14,7 @@ from .experiment import Experiment, HorizonContinuation, MultipleShooting
 from .starts import MultiStart
 from .batch import _multi_start
 from .result import FitResult, IdentifiabilityWarning, LackOfFitWarning
-from .steps import _by_continuation, _fit_directly
+from .steps import _by_continuation, _fit_directly, _warn_unconverged
 
 
 def fit(
@@ -103,7 +103,8 @@ def fit(
       vmapped computation) and keep the lowest loss. False: fit directly only.
 
     **Returns:** a `jaxdyn.FitResult`; a converged fit that still does not explain its data
-    warns (`jaxdyn.LackOfFitWarning`).
+    warns (`jaxdyn.LackOfFitWarning`), one that ran out of steps warns too (`RuntimeWarning`;
+    not for a direct attempt that globalisation replaced).
     """
     start_time = time.perf_counter()
     experiments = [experiments] if isinstance(experiments, Experiment) else list(experiments)
@@ -126,16 +127,20 @@ def fit(
     elif isinstance(globalisation, MultiStart):
         result = _multi_start(globalisation, dynamics, experiments, params, options)
     else:
-        result = _fit_directly(dynamics, experiments, params, **options)
+        may_retry = globalisation is None and not checkpoint
+        result = _fit_directly(dynamics, experiments, params, warn=not may_retry, **options)
         # Trapped: converged where the data are not explained, or ran out of steps crawling
         # (not stopped by the callback, whose decision stands).
-        trapped = result.explains_data is False and (result.converged
-                                                     or result.num_steps >= max_steps)
-        if globalisation is None and trapped and not checkpoint:
+        ran_out = not result.converged and result.num_steps >= max_steps
+        trapped = result.explains_data is False and (result.converged or ran_out)
+        if may_retry and trapped:
             retried = _by_continuation(HorizonContinuation(), dynamics, experiments, params,
                                        options)
             if retried.loss < result.loss:
                 result = retried
+        if may_retry and result.strategy == "direct" and ran_out:
+            # (the direct fit's warning, only where it is the fit returned)
+            _warn_unconverged(max_steps, list(result.loss_history), stacklevel=3)
     result = eqx.tree_at(lambda r: r.wall_time, result, time.perf_counter() - start_time)
     # Warned for the fit returned only (not for one that globalisation replaced).
     if result.uncertainty is not None and result.uncertainty.unidentifiable:

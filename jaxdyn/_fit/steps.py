@@ -29,11 +29,11 @@ INITIAL_FAILURE = ("The simulations at the initial parameters fail (the loss is 
                    "check the initial guess and states, e.g. with jaxdyn.simulate.")
 
 
-def _warn_unconverged(max_steps, history):
+def _warn_unconverged(max_steps, history, stacklevel=4):
     last = history[-1] if history else float("nan")
     warnings.warn(f"The fit did not converge in max_steps = {max_steps} steps (loss "
                   f"{last:.6g}); raise max_steps or start closer.", RuntimeWarning,
-                  stacklevel=4)
+                  stacklevel=stacklevel)
 
 
 def _in_precision(state, latent):
@@ -138,9 +138,10 @@ def _load(path, latent, state, max_steps):
 def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation, observe,
                   fit_initial_states, shooting, optimiser, max_steps, rtol, atol, adjoint,
                   simulate_options, uncertainty, identifiability_tolerance, progress,
-                  callback, checkpoint, checkpoint_every, horizons=None):
+                  callback, checkpoint, checkpoint_every, horizons=None, warn=True):
     """One fit from `params` (`fit` without globalisation); `horizons` as in
-    `group_experiments`."""
+    `group_experiments`. `warn`: warn when the fit runs out of steps (False for a fit that
+    globalisation may replace, whose caller warns for the fit it returns)."""
     start_time = time.perf_counter()
     problem, latent, solver, fn, options, identifiability_tolerance = _setup(
         dynamics, experiments, params, filter_spec, parametrisation, observe,
@@ -191,7 +192,7 @@ def _fit_directly(dynamics, experiments, params, *, filter_spec, parametrisation
                 break
     finally:
         bar.close()
-    if not done and not stopped:
+    if warn and not done and not stopped:
         _warn_unconverged(max_steps, history)
     return _result(problem, latent, state, history, done, iteration, uncertainty,
                    identifiability_tolerance, start_time)
