@@ -91,7 +91,8 @@ _as_nan: list[bool] = []
 @contextlib.contextmanager
 def checks_as_nan():
     """`error_if` traced as NaN in its value where a check fails, at any level of the trace,
-    instead of a branch to the host; with `library_checks_as_nan` for equinox's. For a
+    instead of a branch to the host (a value with no floating-point leaf keeps the branch);
+    with `library_checks_as_nan` for equinox's. For a
     program called with values that holds no host callback (JAX's persistent compilation
     cache keeps only such programs), whose caller reads a non-finite result as a failure and
     then runs the checked program from the same inputs for the check's message."""
@@ -144,8 +145,9 @@ def error_if(x, checks: Sequence[tuple] | Callable[[], Sequence[tuple]], state=N
     if _read_on_host and _read_on_host[-1][0] is jax_core.unsafe_get_current_trace():
         _read_on_host[-1][1].append(jnp.asarray(failed))
         return x
-    if _as_nan:
-        # (any member's failure under vmap: x stays unbatched, as below)
+    if _as_nan and any(eqx.is_inexact_array(a) for a in jax.tree_util.tree_leaves(x)):
+        # (any member's failure under vmap: x stays unbatched, as below; a value without a
+        # floating-point leaf could not show the failure, and keeps the branch to the host)
         failed = eqxi.unvmap_any(failed)
         return jax.tree_util.tree_map(
             lambda a: jnp.where(failed, jnp.nan, a) if jnp.issubdtype(a.dtype, jnp.inexact)

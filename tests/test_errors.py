@@ -768,3 +768,23 @@ def test_a_nan_whose_cause_no_check_finds_still_raises_and_says_what_was_checked
     np.testing.assert_array_equal(batched(np.ones((3, 2))), np.ones((3, 2)))
     with pytest.raises(RuntimeError, match=r"It happened at t = 0.5, q = \[nan, 1.0\]"):
         batched(np.stack([np.ones(2), bad]))
+
+
+def test_checks_traced_as_nan_show_in_floating_point_values_and_keep_the_rest():
+    """Under `checks_as_nan` (a fit's step, which must hold no host callback), a failed check
+    makes its floating-point value NaN and a passed one leaves it alone; a value with no
+    floating-point leaf, which NaN cannot mark, keeps the check's branch to the host and
+    still raises its message."""
+    from jaxdyn._errors import checks_as_nan, error_if
+
+    def checked(x, message):
+        return error_if(x, [(x.sum() > 3, message)])
+
+    with checks_as_nan():
+        floats = jax.jit(functools.partial(checked, message="too large"))
+        np.testing.assert_array_equal(floats(jnp.array([1.0, 2.0])), [1.0, 2.0])
+        assert np.all(np.isnan(floats(jnp.array([1.0, 5.0]))))
+        integers = jax.jit(functools.partial(checked, message="integers too large"))
+        np.testing.assert_array_equal(integers(jnp.array([1, 2])), [1, 2])
+        with pytest.raises(Exception, match="integers too large"):
+            jax.block_until_ready(integers(jnp.array([1, 5])))
