@@ -11,7 +11,8 @@ argument structure, a `jax.jit` of the array leaves alone, so that a repeated ca
 import contextlib
 import functools
 import gc
-from typing import Any
+import weakref
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -73,18 +74,18 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
 
     @functools.wraps(fn)
     def wrapper(*args):
-        leaves, treedef = _flatten(args)
-        kinds = [_kind(type(x)) for x in leaves]
-        if _TRACER in kinds:
+        leaves, treedef, parts = _flatten(args)
+        if any(_TRACER in part.kinds for part in parts):
             return fallback(*args)
+        kinds = [k for part in parts for k in part.kinds]
         dynamic = [i for i, k in enumerate(kinds) if k is _ARRAY]
         arrays = [leaves[i] for i in dynamic]
         # Typed, so that equal values of different types (1, 1.0, True) stay apart.
-        static = tuple((type(x), x) for x, k in zip(leaves, kinds) if k is _STATIC)
+        static = tuple(item for part in parts for item in part.static)
         try:
             # (with JAX's switch for compile time over run time, under which jaxdyn also
             # traces other forms of some programs: `jaxdyn._integrate.simulate._stepper`)
-            key = (treedef, static, tuple((x.shape, x.dtype) for x in arrays),
+            key = (treedef, static, tuple(part.avals for part in parts),
                    jax.config.read("jax_disable_most_optimizations"), checks_as_nan_active())
             entry = cache.get(key)
         except TypeError:  # an unhashable option
@@ -196,36 +197,93 @@ def _merge(static, dynamic_positions, dynamic_values):
     return leaves
 
 
-# Modules seen recently (the user's system, solver, adjoint), flattened once: they are
-# immutable, and flattening a module runs Python for every field (~30 µs for `simulate`'s
-# arguments). Keyed by identity; the entry keeps the module alive, so its id is not reused.
+class _Part(NamedTuple):
+    """What the dispatch reads of one argument's leaves: their kinds, the static ones (typed:
+    equal values of different types, 1, 1.0 and True, stay apart) and the arrays' shapes and
+    dtypes (a token that stands for them where the part is remembered)."""
+
+    kinds: tuple
+    static: tuple
+    avals: Any
+
+
+def _part(leaves) -> _Part:
+    kinds = tuple(_kind(type(x)) for x in leaves)
+    return _Part(kinds, tuple((type(x), x) for x, k in zip(leaves, kinds) if k is _STATIC),
+                 tuple((x.shape, x.dtype) for x, k in zip(leaves, kinds) if k is _ARRAY))
+
+
+# Arguments seen recently, read once: modules (the user's system, solver, adjoint; immutable)
+# by identity, the entry keeping the module alive so that its id is not reused; and large
+# trees of JAX arrays (a robot's parameters: hundreds of arrays, whose shapes and dtypes alone
+# cost ~0.3 ms to read in Python at every call) by the identities of their leaves, which JAX
+# never changes in place. A tree's entry holds weak references only (a user's large arrays
+# are not kept alive by it) and goes when one of its arrays does, before its id can be reused.
 _MODULES: dict = {}
-_MODULES_MAX = 256
+_TREES: dict = {}
+_REMEMBERED_MAX = 256
+_TREE_LEAVES_MIN = 16  # smaller trees are read at each call: cheaper than the look-up
+# The shapes and dtypes of a remembered tree -> a number that stands for them in the cache's
+# key (hashed at no cost, where a tuple of hundreds is hashed again at every call). Never
+# cleared: a number is never reused for other shapes.
+_AVALS: dict = {}
+
+
+def remembered_arrays(leaves, treedef) -> bool:
+    """Whether `leaves` (of a tree of `treedef`) are a large tree of JAX arrays seen before,
+    unchanged (the same arrays): nothing in them then needs reading again."""
+    if len(leaves) < _TREE_LEAVES_MIN:
+        return False
+    return (treedef, tuple(map(id, leaves))) in _TREES
 
 
 def _flatten(args):
-    """(leaves, treedef) of a tuple of arguments; modules among the arguments (and in tuples
-    of them) are flattened once and remembered. `treedef` is a nested tuple of treedefs."""
-    leaves, treedefs = [], []
+    """(leaves, treedef, parts) of a tuple of arguments, `parts` a `_Part` per argument (one
+    per element of a tuple among them); modules and large trees of JAX arrays are read once
+    and remembered. `treedef` is a nested tuple of treedefs."""
+    leaves, treedefs, parts = [], [], []
     for x in args:
         if type(x) is tuple:
-            sub_leaves, sub_treedef = _flatten(x)
+            sub_leaves, sub_treedef, sub_parts = _flatten(x)
             treedefs.append(("tuple", sub_treedef))
+            parts.extend(sub_parts)
         elif _is_module(type(x)):
             hit = _MODULES.get(id(x))
             if hit is None or hit[0] is not x:
                 hit = (x, *jax.tree_util.tree_flatten(x))
                 if not any(_kind(type(leaf)) is _TRACER for leaf in hit[1]):
-                    if len(_MODULES) >= _MODULES_MAX:
+                    if len(_MODULES) >= _REMEMBERED_MAX:
                         _MODULES.clear()
-                    _MODULES[id(x)] = hit
+                    _MODULES[id(x)] = hit = (*hit, _part(hit[1]))
             sub_leaves, sub_treedef = hit[1], hit[2]
+            parts.append(hit[3] if len(hit) > 3 else _part(sub_leaves))
             treedefs.append((len(sub_leaves), sub_treedef))
         else:
             sub_leaves, sub_treedef = jax.tree_util.tree_flatten(x)
             treedefs.append((len(sub_leaves), sub_treedef))
+            parts.append(_tree_part(sub_leaves, sub_treedef))
         leaves.extend(sub_leaves)
-    return leaves, tuple(treedefs)
+    return leaves, tuple(treedefs), parts
+
+
+def _tree_part(leaves, treedef) -> _Part:
+    if len(leaves) < _TREE_LEAVES_MIN:
+        return _part(leaves)
+    key = (treedef, tuple(map(id, leaves)))
+    hit = _TREES.get(key)
+    if hit is not None:
+        return hit[1]
+    part = _part(leaves)
+    if all(isinstance(x, jax.Array) and _kind(type(x)) is _ARRAY for x in leaves):
+        if len(_TREES) >= _REMEMBERED_MAX:
+            _TREES.clear()
+        part = part._replace(avals=_AVALS.setdefault(part.avals, len(_AVALS)))
+
+        def forget(_, key=key):
+            _TREES.pop(key, None)
+
+        _TREES[key] = ([weakref.ref(x, forget) for x in leaves], part)
+    return part
 
 
 # What a leaf is, by its type (cached: `isinstance` against JAX's abstract array classes costs

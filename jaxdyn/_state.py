@@ -16,7 +16,7 @@ import numpy as np
 from jax._src import core as jax_core
 
 from ._chunking import chunked_vmap
-from ._compile import filter_jit
+from ._compile import filter_jit, remembered_arrays
 from ._errors import reports_state
 
 
@@ -155,7 +155,8 @@ def numbers_as_arrays(tree, dtype=None):
         if type(tree) is tuple:
             return tuple(converted(x) for x in tree)
         leaves, treedef = jax.tree_util.tree_flatten(tree)
-        if not any(isinstance(x, (float, int)) for x in leaves):
+        if remembered_arrays(leaves, treedef) or not any(isinstance(x, (float, int))
+                                                         for x in leaves):
             return tree
         return jax.tree_util.tree_unflatten(treedef, [convert(x) for x in leaves])
 

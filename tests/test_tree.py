@@ -627,6 +627,33 @@ def test_later_calls_of_the_robotics_functions_and_a_gradient_compile_nothing():
     assert not np.allclose(first[1], second[1])
 
 
+def test_parameters_changed_in_place_are_read_again_and_not_kept_alive():
+    """The dispatch remembers a robot's parameters by the identities of their arrays (not
+    read again at each call): a dict changed in place, an array replaced by a Python float,
+    gives Pinocchio's forward dynamics of the changed model, and no call keeps the arrays
+    alive."""
+    import gc
+    import weakref
+
+    path = jaxdyn.example_robot_urdf("panda")
+    tree, p = jaxdyn.from_urdf(path, damping=False)
+    body = jaxdyn.ArticulatedBody(tree)
+    model = pin.buildModelFromUrdf(path)
+    rng = np.random.default_rng(11)
+    q, u = rng.uniform(-1, 1, 9), rng.normal(size=9)
+    for doubled in (False, True, True):  # the last: the changed parameters again
+        if doubled and model.inertias[4].mass < 3.5:
+            p["panda_link4"]["mass"] = 2 * float(p["panda_link4"]["mass"])
+            model.inertias[4].mass = 2 * model.inertias[4].mass
+        expected = pin.aba(model, model.createData(), q, u, np.zeros(9))
+        assert_close(body.accelerations(0.0, q, u, p), expected, rtol=0, atol=1e-10)
+        assert_close(body.residual(0.0, q, u, expected, p), np.zeros(9), rtol=0, atol=1e-10)
+    com = weakref.ref(p["panda_link4"]["com"])
+    del p
+    gc.collect()
+    assert com() is None
+
+
 def test_locked_joints_are_pinocchios_reduced_model():
     """`from_urdf(..., locked=...)` welds the Panda's fingers at zero: its mass matrix and
     forward dynamics are those of Pinocchio's `buildReducedModel` at the zero reference, and
