@@ -128,32 +128,45 @@ class _Welded(eqx.Module):
     part: str = eqx.field(static=True)
 
     def __call__(self, p):
-        # As arrays over the welded links (stacked), not a Python sum per link: ANYmal-C's 65
-        # welded links written out per link were 45 % of its forward dynamics' program.
-        masses = [jnp.asarray(_value(link.mass, p)) for link in self.links]
-        dtype = jnp.result_type(*masses, float)
-        masses = jnp.stack(masses).astype(dtype)
-        mass = jnp.sum(masses)
-        if self.part == "mass":
-            return mass
-        rotations = np.stack(self.rotations).astype(dtype)
-        centres = np.stack(self.translations).astype(dtype) + jnp.einsum(
-            "kij,kj->ki", rotations,
-            jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links]))
-        first = masses @ centres
-        # Massless bodies (URDF's dummy links) have their centre at the origin: a safe divisor
-        # keeps the derivative finite where the mass is zero.
-        massless = mass == 0
-        centre = jnp.where(massless, 0.0, first / jnp.where(massless, 1.0, mass))
-        if self.part == "com":
-            return centre
-        with_inertia = [k for k, link in enumerate(self.links) if link.inertia is not None]
-        total = jnp.zeros((3, 3), dtype)
-        if with_inertia:
-            inertias = jnp.stack([jnp.asarray(_value(self.links[k].inertia, p), dtype)
-                                  for k in with_inertia])
-            turned = rotations[np.asarray(with_inertia)]
-            total = jnp.einsum("kij,kjl,kml->im", turned, inertias, turned)
-        d = centres - centre[None, :]
-        return total + (masses @ jnp.sum(d * d, axis=1)) * jnp.eye(3, dtype=dtype) - jnp.einsum(
-            "k,ki,kj->ij", masses, d, d)
+        combined = welded_inertias([(self.links, self.rotations, self.translations)], p)
+        return combined[("mass", "com", "inertia").index(self.part)][0]
+
+
+def welded_inertias(bodies, p, dtype=None):
+    """(masses (B,), centres of mass (B, 3), central inertias (B, 3, 3)) of B bodies, each
+    links welded together, given as (links, rotations R_k, translations r_k in the body's
+    axes), by Huygens–Steiner as in `_Welded`; a body of no mass has its centre at its origin.
+
+    All bodies at once, as arrays over all their links (each body's sums a product with a
+    constant 0/1 matrix): written out per body, or per link, this work on the parameters
+    alone was half of ANYmal-C's forward dynamics program (half its compile time and half
+    its run, `benchmarks/LOG.md`)."""
+    links = [link for body in bodies for link in body[0]]
+    body_of = np.repeat(np.arange(len(bodies)), [len(body[0]) for body in bodies])
+    masses = [jnp.asarray(_value(link.mass, p)) for link in links]
+    dtype = jnp.result_type(*masses, float) if dtype is None else dtype
+    masses = jnp.stack(masses).astype(dtype)
+    summed = np.zeros((len(bodies), len(links)), dtype)
+    summed[body_of, np.arange(len(links))] = 1.0
+    rotations = np.asarray([r for body in bodies for r in body[1]], dtype)
+    translations = np.asarray([r for body in bodies for r in body[2]], dtype)
+    coms = [jnp.asarray(_value(link.com, p), dtype) for link in links]
+    zero = np.zeros((3, 3), dtype)
+    inertias = [zero if link.inertia is None else jnp.asarray(_value(link.inertia, p), dtype)
+                for link in links]
+    for name, values, shape in (("com", coms, (3,)), ("inertia", inertias, (3, 3))):
+        if any(value.shape != shape for value in values):
+            raise ValueError(f"Every link's {name} must have shape {shape}.")
+    centres = translations + jnp.einsum("kij,kj->ki", rotations, jnp.stack(coms))
+    mass = summed @ masses
+    # Massless bodies (URDF's dummy links) have their centre at the origin: a safe divisor
+    # keeps the derivative finite where the mass is zero.
+    massless = (mass == 0)[:, None]
+    centre = jnp.where(massless, 0.0, (summed @ (masses[:, None] * centres))
+                       / jnp.where(massless, 1.0, mass[:, None]))
+    d = centres - summed.T @ centre
+    about_centre = (jnp.einsum("kij,kjl,kml->kim", rotations, jnp.stack(inertias), rotations)
+                    + masses[:, None, None] * (jnp.sum(d * d, axis=1)[:, None, None]
+                                               * np.eye(3, dtype=dtype)[None]
+                                               - d[:, :, None] * d[:, None, :]))
+    return mass, centre, jnp.einsum("bk,kij->bij", summed, about_centre)

@@ -40,7 +40,8 @@ from .._state import check_vector, frozen_constant
 from . import spatial, tree_levels
 from .base import AbstractMultibody
 from .joints import Fixed
-from .links import Link, LinkLoad, _rotation, _value, _vector3, _Welded, users_callable
+from .links import (Link, LinkLoad, _rotation, _value, _vector3, _Welded, users_callable,
+                    welded_inertias)
 from .tree_levels import _stacked
 
 JOINT_ARGS = ("q", "u", "p")
@@ -396,7 +397,15 @@ class RigidBodyTree(AbstractMultibody):
     # -- inertia, energies and forces ---------------------------------------------------------
 
     def link_inertias(self, p, dtype=None):
-        """(masses (N,), centres of mass (N, 3), inertias about them (N, 3, 3))."""
+        """(masses (N,), centres of mass (N, 3), inertias about them (N, 3, 3)). Where links
+        are welded together (`merge_fixed`), every body's are combined at once
+        (`welded_inertias`)."""
+        if any(isinstance(link.mass, _Welded) for link in self.links):
+            identity, origin = _rotation(None), (0.0, 0.0, 0.0)
+            return welded_inertias(
+                [(link.mass.links, link.mass.rotations, link.mass.translations)
+                 if isinstance(link.mass, _Welded) else ((link,), (identity,), (origin,))
+                 for link in self.links], p, dtype)
         masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in self.links])
         dtype = masses.dtype if dtype is None else dtype
         coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links])
