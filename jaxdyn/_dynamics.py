@@ -22,7 +22,8 @@ from ._linalg import (
     solve_mass_matrix,
 )
 from ._state import public_method, under_a_trace
-from ._unroll import Symbol, give_up_beyond, is_constant, structure, unrolled
+from ._unroll import (Symbol, give_up_beyond, give_up_beyond_program, is_constant, structure,
+                      unrolled)
 from ._unroll import straight_line_size as straight_line_program_size
 
 
@@ -377,6 +378,8 @@ def accelerations_from_equations(dynamics, t, q, u, p, *, small):
     if small:  # the LDLᵀ factorisation written out emits about m³/6 multiply–adds
         give_up_beyond(u.shape[-1] ** 3 // 6)
     mass_matrix, forcing = formed_equations(dynamics, t, q, u, p)
+    if small:
+        give_up_beyond_program(formed_equations, dynamics, t, q, u, p)
     blocks = None if small else mass_matrix_blocks(dynamics, t, q, u, p)
     return solve_mass_matrix(mass_matrix, forcing, unrolled=small, blocks=blocks)
 
@@ -403,9 +406,33 @@ def formed_mass_matrix(dynamics, t, q, u, p):
                     max_elements=None if dynamics.mass_matrix_in_straight_line else 0)
 
 
+# What `structure` found of M, by system and argument shapes: the analysis sees the arguments
+# as symbols (their values never matter), and a first `simulate` asks twice (is M constant,
+# what are its blocks), at up to a second each for a chain of 20 links by Kane's equations.
+_STRUCTURES: dict = {}
+
+
 def _mass_matrix_structure(dynamics, t, q, u, p):
-    return structure(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
-                     tags=("t", "q", "u", "p"))
+    leaves, treedef = jax.tree_util.tree_flatten((t, q, u, p))
+    key = (dynamics, treedef, tuple((jnp.shape(x), jnp.result_type(x), _weak(x))
+                                     for x in leaves))
+    try:
+        found = _STRUCTURES.get(key)
+    except TypeError:  # a system that holds traced or unhashable values: analysed each time
+        key, found = None, None
+    if found is None:
+        found = (structure(lambda *args: dynamics.form_equations(*args)[0], t, q, u, p,
+                           tags=("t", "q", "u", "p")),)
+        if key is not None:
+            if len(_STRUCTURES) >= 64:
+                _STRUCTURES.clear()
+            _STRUCTURES[key] = found
+    return found[0]
+
+
+def _weak(x) -> bool:
+    return bool(getattr(getattr(x, "aval", None), "weak_type", False)) or isinstance(
+        x, (int, float))
 
 
 def mass_matrix_blocks(dynamics, t, q, u, p):

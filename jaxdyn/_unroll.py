@@ -239,6 +239,21 @@ def give_up_beyond(count: int):
         raise _Fallback
 
 
+def give_up_beyond_program(fn, *args):
+    """Inside the trace of an attempt at straight-line code: give up at once if the program
+    ``fn(*args)`` (a jitted function whose trace JAX caches, so that asking costs little)
+    already holds more elements than an attempt tries (`MAX_TRIED`), before the rest of the
+    attempt is traced (a chain of 20 links by Kane's equations: M and f alone hold 111 000,
+    and writing out their LDLᵀ solve after them took 0.4 s of its first `simulate`).
+    Outside an attempt: nothing."""
+    limit = _ATTEMPT.get()
+    if limit is None:
+        return
+    closed = eqx.filter_make_jaxpr(fn)(*args)[0]
+    if _size(_dead_code_eliminated(closed.jaxpr)) > max(MAX_TRIED, limit):
+        raise _Fallback
+
+
 def _traced(fn, leaves, treedef, limit):
     """(closed jaxpr, output shapes) of ``fn`` on the leaves' structure. A program that is one
     call of a jitted function is its callee: `fn` can then be a `jax.jit` (or

@@ -150,6 +150,33 @@ def test_programs_over_budget_run_as_written():
     assert not called
 
 
+def test_equations_too_large_to_try_give_up_before_their_solve_is_written_out(monkeypatch):
+    """An attempt at straight-line code whose M and f alone exceed what is tried gives up
+    before writing out their LDLᵀ solve, and the structure of M is analysed once for a first
+    `simulate`; the accelerations are the closed form's."""
+    import jaxdyn._dynamics
+    import jaxdyn._unroll
+
+    # (functions of their own: traces that no earlier test cached)
+    kinetic, potential = DOUBLE_PENDULUM.dynamics.kinetic, DOUBLE_PENDULUM.dynamics.potential
+    system = jaxdyn.Lagrangian(lambda *a: kinetic(*a), lambda *a: potential(*a))
+    p = DOUBLE_PENDULUM.params
+    for budget in ("MAX_TRIED", "MAX_ELEMENTS"):  # below the double pendulum's M and f
+        monkeypatch.setattr(jaxdyn._unroll, budget, 10)
+    solves, analyses = [], []
+    solve, structure = jaxdyn._dynamics.solve_mass_matrix, jaxdyn._dynamics.structure
+    monkeypatch.setattr(jaxdyn._dynamics, "solve_mass_matrix",
+                        lambda *a, **k: solves.append(k["unrolled"]) or solve(*a, **k))
+    monkeypatch.setattr(jaxdyn._dynamics, "structure",
+                        lambda *a, **k: analyses.append(True) or structure(*a, **k))
+    q, qd = DOUBLE_PENDULUM.sample(np.random.default_rng(4))
+    assert_close(system.accelerations(0.0, q, qd, p),
+                 DOUBLE_PENDULUM.accelerations(q, qd, p), rtol=1e-12)
+    assert solves and not any(solves)  # only the array program's solve was traced
+    jaxdyn.simulate(system, q, qd, p, t1=0.1)
+    assert len(analyses) == 1
+
+
 def _pattern(elements):
     """'0' for a structural zero, 'c' for another constant, else the dependencies."""
     def one(e):
