@@ -399,25 +399,21 @@ class RigidBodyTree(AbstractMultibody):
     def link_inertias(self, p, dtype=None):
         """(masses (N,), centres of mass (N, 3), inertias about them (N, 3, 3)). Where links
         are welded together (`merge_fixed`), every body's are combined at once
-        (`welded_inertias`)."""
-        if any(isinstance(link.mass, _Welded) for link in self.links):
-            identity, origin = _rotation(None), (0.0, 0.0, 0.0)
-            return welded_inertias(
-                [(link.mass.links, link.mass.rotations, link.mass.translations)
-                 if isinstance(link.mass, _Welded) else ((link,), (identity,), (origin,))
-                 for link in self.links], p, dtype)
-        masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in self.links])
-        dtype = masses.dtype if dtype is None else dtype
-        coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in self.links])
-        zero = jnp.zeros((3, 3), dtype)
-        inertias = jnp.stack([zero if link.inertia is None
-                              else jnp.asarray(_value(link.inertia, p), dtype)
-                              for link in self.links])
-        for name, value, shape in (("com", coms, (len(self.links), 3)),
-                                   ("inertia", inertias, (len(self.links), 3, 3))):
-            if value.shape != shape:
-                raise ValueError(f"Every link's {name} must have shape {shape[1:]}.")
-        return masses.astype(dtype), coms, inertias
+        (`welded_inertias`); a link alone keeps its own values (exactly: straight-line code
+        folds what they fold)."""
+        bodies = {i: link.mass for i, link in enumerate(self.links)
+                  if isinstance(link.mass, _Welded)}
+        if not bodies:
+            return _own_inertias(self.links, p, dtype)
+        welded = list(bodies)
+        combined = welded_inertias([(body.links, body.rotations, body.translations)
+                                    for body in bodies.values()], p, dtype)
+        alone = [i for i in range(len(self.links)) if i not in welded]
+        if not alone:
+            return combined
+        own = _own_inertias([self.links[i] for i in alone], p, combined[0].dtype)
+        order = np.argsort(alone + welded)
+        return tuple(jnp.concatenate([a, b])[order] for a, b in zip(own, combined))
 
     def kinematic_matrix(self, t, q, p, kinematic_map=None, u=None):
         self._check_state(q, u, kinematic_map)
@@ -588,3 +584,18 @@ class RigidBodyTree(AbstractMultibody):
         return (self.elastic_energy(t, q, p) if self.potential is not None else None,
                 forces, loads, _value(self.gravity, p) if users_callable(self.gravity)
                 else None, values)
+
+
+def _own_inertias(links, p, dtype=None):
+    """(masses, centres of mass, central inertias) of links, each its own values."""
+    masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in links])
+    dtype = masses.dtype if dtype is None else dtype
+    coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in links])
+    zero = jnp.zeros((3, 3), dtype)
+    inertias = jnp.stack([zero if link.inertia is None
+                          else jnp.asarray(_value(link.inertia, p), dtype) for link in links])
+    for name, value, shape in (("com", coms, (len(links), 3)),
+                               ("inertia", inertias, (len(links), 3, 3))):
+        if value.shape != shape:
+            raise ValueError(f"Every link's {name} must have shape {shape[1:]}.")
+    return masses.astype(dtype), coms, inertias
