@@ -200,7 +200,7 @@ def _merge(static, dynamic_positions, dynamic_values):
 class _Part(NamedTuple):
     """What the dispatch reads of one argument's leaves: their kinds, the static ones (typed:
     equal values of different types, 1, 1.0 and True, stay apart) and the arrays' shapes and
-    dtypes (a token that stands for them where the part is remembered)."""
+    dtypes (for a large tree, a number that stands for them)."""
 
     kinds: tuple
     static: tuple
@@ -223,7 +223,7 @@ _MODULES: dict = {}
 _TREES: dict = {}
 _REMEMBERED_MAX = 256
 _TREE_LEAVES_MIN = 16  # smaller trees are read at each call: cheaper than the look-up
-# The shapes and dtypes of a remembered tree -> a number that stands for them in the cache's
+# The shapes and dtypes of a large tree -> a number that stands for them in the cache's
 # key (hashed at no cost, where a tuple of hundreds is hashed again at every call). Never
 # cleared: a number is never reused for other shapes.
 _AVALS: dict = {}
@@ -274,10 +274,12 @@ def _tree_part(leaves, treedef) -> _Part:
     if hit is not None:
         return hit[1]
     part = _part(leaves)
+    # (a number for the shapes whether or not the tree is remembered: the same shapes given
+    # as NumPy arrays must find the program compiled for JAX arrays)
+    part = part._replace(avals=_AVALS.setdefault(part.avals, len(_AVALS)))
     if all(isinstance(x, jax.Array) and _kind(type(x)) is _ARRAY for x in leaves):
         if len(_TREES) >= _REMEMBERED_MAX:
             _TREES.clear()
-        part = part._replace(avals=_AVALS.setdefault(part.avals, len(_AVALS)))
 
         def forget(_, key=key):
             _TREES.pop(key, None)

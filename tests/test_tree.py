@@ -630,8 +630,8 @@ def test_later_calls_of_the_robotics_functions_and_a_gradient_compile_nothing():
 def test_parameters_changed_in_place_are_read_again_and_not_kept_alive():
     """The dispatch remembers a robot's parameters by the identities of their arrays (not
     read again at each call): a dict changed in place, an array replaced by a Python float,
-    gives Pinocchio's forward dynamics of the changed model, and no call keeps the arrays
-    alive."""
+    gives Pinocchio's forward dynamics of the changed model, the same values as NumPy arrays
+    compile nothing, and no call keeps the arrays alive."""
     import gc
     import weakref
 
@@ -648,6 +648,10 @@ def test_parameters_changed_in_place_are_read_again_and_not_kept_alive():
         expected = pin.aba(model, model.createData(), q, u, np.zeros(9))
         assert_close(body.accelerations(0.0, q, u, p), expected, rtol=0, atol=1e-10)
         assert_close(body.residual(0.0, q, u, expected, p), np.zeros(9), rtol=0, atol=1e-10)
+    with compiles() as count:  # the same shapes as NumPy arrays: the same program
+        assert_close(body.accelerations(0.0, q, u, jax.tree.map(np.asarray, p)), expected,
+                     rtol=0, atol=1e-10)
+    assert count() == 0
     com = weakref.ref(p["panda_link4"]["com"])
     del p
     gc.collect()
