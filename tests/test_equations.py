@@ -300,10 +300,14 @@ def test_a_large_system_matches_numpy_and_its_batched_derivative_calls_no_lapack
     def lagrangian(q, qd):
         return chain.kinetic(q, qd, p) - chain.potential(q, p)
 
+    @jax.jit
+    def lagrange(q, qd):  # M and f of Lagrange's equations, M u̇ = f
+        mixed = jax.jacfwd(jax.grad(lagrangian, argnums=1), argnums=0)(q, qd)
+        return (jax.hessian(lagrangian, argnums=1)(q, qd),
+                jax.grad(lagrangian, argnums=0)(q, qd) - mixed @ qd)
+
     for q, qd, a in zip(qs, qds, np.asarray(got)):
-        mass = np.asarray(jax.hessian(lagrangian, argnums=1)(q, qd))
-        mixed = np.asarray(jax.jacfwd(jax.grad(lagrangian, argnums=1), argnums=0)(q, qd))
-        forcing = np.asarray(jax.grad(lagrangian, argnums=0)(q, qd)) - mixed @ qd
+        mass, forcing = (np.asarray(x) for x in lagrange(q, qd))
         assert_close(a, np.linalg.solve(mass, forcing), rtol=1e-11, atol=1e-11)
 
     program = jax.jit(jax.vmap(jax.jacfwd(accelerations))).lower(qs, qds).as_text()
@@ -320,7 +324,8 @@ def test_symmetric_solves_match_numpy_and_flag_what_is_not_positive_definite(siz
     """`spd_solve` (written out up to 8, by columns above) against NumPy on a batch of random
     positive definite matrices, with one and several right-hand sides; an indefinite matrix
     and a singular one are flagged; the derivative against a central difference."""
-    from jaxdyn._linalg import spd_solve
+    from jaxdyn._linalg import spd_solve as solve
+    spd_solve = jax.jit(solve)  # compiled, as the library calls it (eager, op by op)
     rng = np.random.default_rng(size)
     a = rng.normal(size=(4, size, size))
     h = a @ np.swapaxes(a, 1, 2) + size * np.eye(size)
@@ -339,10 +344,11 @@ def test_symmetric_solves_match_numpy_and_flag_what_is_not_positive_definite(siz
     def total(m):
         return jnp.sum(spd_solve(m @ m.T + size * jnp.eye(size), jnp.asarray(b[0]))[0])
 
+    total = jax.jit(total)
     direction = rng.normal(size=(size, size))
     step = 1e-6
     difference = (total(a[0] + step * direction) - total(a[0] - step * direction)) / (2 * step)
-    assert_close(jnp.sum(jax.grad(total)(jnp.asarray(a[0])) * direction), difference,
+    assert_close(jnp.sum(jax.jit(jax.grad(total))(jnp.asarray(a[0])) * direction), difference,
                  rtol=1e-7)
 
 
@@ -354,7 +360,12 @@ def test_pivoted_lu_solves_match_numpy_and_exchange_rows_where_a_pivot_vanishes(
     a central difference, and as Newton's solver in optimistix."""
     import lineax as lx
     import optimistix as optx
-    from jaxdyn._linalg import PivotedLU, lu_factor, lu_solve
+    from jaxdyn._linalg import PivotedLU
+    from jaxdyn._linalg import lu_factor as factor
+    from jaxdyn._linalg import lu_solve as solve
+    # Compiled, as the library calls them: eager, each step's operations compile apart.
+    lu_factor = jax.jit(factor)
+    lu_solve = jax.jit(solve, static_argnames="transposed")
     rng = np.random.default_rng(7)
     for size in (1, 2, 3, 8, 16):
         a = rng.normal(size=(3, size, size))
