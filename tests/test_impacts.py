@@ -5,6 +5,7 @@ rimless wheel) and its stability.
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -136,8 +137,10 @@ def test_panda_end_stop_against_pinocchio_impulse_dynamics():
     e = 0.4
     stop = jaxdyn.UnilateralContact(lambda q, p: 2.5 - q[3], restitution=e)
     arm = jaxdyn.ArticulatedBody(robot.tree)
-    _, u_plus, impulses, _ = stop.jump(arm, 0.0, jnp.asarray(q[0]), jnp.asarray(u), robot.p,
-                                       jnp.array([True]), jnp.array([False]))
+    # Compiled, as a solve calls it (eager, its operations would compile one by one).
+    jump = eqx.filter_jit(stop.jump)
+    _, u_plus, impulses, _ = jump(arm, 0.0, jnp.asarray(q[0]), jnp.asarray(u), robot.p,
+                                  jnp.array([True]), jnp.array([False]))
     row = np.zeros(u.shape[0])
     row[3] = -1.0
     v_plus = pin.impulseDynamics(robot.model, robot.data, q_pin[0], robot.permutation @ u,
@@ -182,7 +185,8 @@ def test_spinning_rod_both_ends_push_though_one_separates():
     G = [[4, −2], [−2, 4]] and c = ((1 + e)(−3), +1), Λ = (4/3, 5/12) ≥ 0."""
     q0, u0 = jnp.array([0.0, 0.0, 0.0]), jnp.array([0.0, -1.0, 4.0])
     fired, resting = jnp.array([True, False]), jnp.array([False, False])
-    _, u_plus, impulses, rest = ROD_ENDS.jump(ROD, 0.0, q0, u0, None, fired, resting)
+    jump = eqx.filter_jit(ROD_ENDS.jump)  # compiled, as a solve calls it
+    _, u_plus, impulses, rest = jump(ROD, 0.0, q0, u0, None, fired, resting)
     np.testing.assert_allclose(impulses, [4 / 3, 5 / 12], rtol=1e-12)
     ends = np.array([[0.0, 1.0, -0.5], [0.0, 1.0, 0.5]])
     expected = np.asarray(u0) + np.diag([1.0, 1.0, 12.0]) @ ends.T @ np.array([4 / 3, 5 / 12])
