@@ -417,6 +417,27 @@ def test_forces_or_dissipation_indexing_past_the_speeds_is_an_error(callback):
     with pytest.raises(ValueError, match="indexes past the end"):
         system.accelerations(0.0, Q0, np.array([1.0]))
 
+def test_an_eliminated_systems_callbacks_are_checked_without_solving_for_its_speeds():
+    """A system reduced to its independent speeds (`Constrained.eliminate`) whose force reads
+    qd[2] of two speeds is named. The check evaluates the user's callbacks at speeds of the
+    right shape, without the Jacobian and solve that give the dependent speeds: through them,
+    the solve's own indexing depended on traced values, which turned the whole check off
+    (the read went unnoticed), and compile-time evaluation compiled each of their operations
+    apart (2.5 s at the slider-crank's first call)."""
+    system = jaxdyn.Constrained(
+        jaxdyn.Lagrangian(lambda q, qd, p: 0.5 * qd @ qd, lambda q, p: 0.5 * q @ q,
+                          forces=lambda q, qd, p: -0.1 * qd[2] * qd),
+        holonomic=lambda q, p: jnp.stack([q[0] - 2.0 * q[1]]))
+    q0, u0 = np.array([0.2, 0.1]), np.array([0.2, 0.1])
+    reduced = system.eliminate(0.0, q0, u0)
+    with pytest.raises(ValueError, match="indexes past the end"):
+        reduced.accelerations(0.0, q0, u0[:1])
+    program = str(jax.make_jaxpr(reduced.user_functions)(0.0, q0, u0[:1]))
+    assert "= mul" in program  # the force's product, evaluated
+    solves = re.findall(r"= (lu|triangular_solve|custom_linear_solve|cholesky|jvp)\b", program)
+    assert not solves, solves
+
+
 def test_a_links_value_indexing_past_its_parameter_is_an_error():
     """A tree's link whose mass is a function of p reading p["m"][2] of a 2-vector: the
     clamped read would give the second mass to this link; the tree's checks of the user's

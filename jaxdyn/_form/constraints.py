@@ -495,20 +495,24 @@ class IndependentSpeeds(AbstractDynamics):
             raise ValueError(f"independent must be distinct indices below num_speeds = "
                              f"{self.num_speeds}, got {self.independent}.")
 
-    def _speeds(self, t, q, v, p):
-        """u(t, q, v): C_d u_d = b − C_i v (g(u) = C u − b is affine in u)."""
+    def _placed(self, q, v):
+        """The speeds with v at the independent places and zeros elsewhere."""
         if v.shape != (len(self.independent),):
             raise ValueError(f"v must have shape ({len(self.independent)},) (the independent "
                              f"speeds {self.independent}), got {v.shape}.")
         independent = np.asarray(self.independent, dtype=np.int32)
-        dependent = np.setdiff1d(np.arange(self.num_speeds), independent).astype(np.int32)
-        base = jnp.zeros(self.num_speeds, q.dtype).at[independent].set(v)
+        return jnp.zeros(self.num_speeds, q.dtype).at[independent].set(v)
+
+    def _speeds(self, t, q, v, p):
+        """u(t, q, v): C_d u_d = b − C_i v (g(u) = C u − b is affine in u)."""
+        base = self._placed(q, v)
+        dependent = np.setdiff1d(np.arange(self.num_speeds), self.independent).astype(np.int32)
         residual = lambda u: self.constrained._velocity_residual(t, q, u, p)  # noqa: E731
         jacobian = jax.jacfwd(residual)(base)
         if jacobian.shape[0] != dependent.shape[0]:
             raise ValueError(
                 f"{jacobian.shape[0]} constraint rows need as many dependent speeds, got "
-                f"{dependent.shape[0]} ({self.num_speeds} speeds, {len(independent)} "
+                f"{dependent.shape[0]} ({self.num_speeds} speeds, {len(self.independent)} "
                 "independent).")
         u_dependent = jnp.linalg.solve(jacobian[:, dependent], -residual(base))
         return base.at[dependent].set(u_dependent)
@@ -534,7 +538,10 @@ class IndependentSpeeds(AbstractDynamics):
         return self.constrained.energy_terms(t, q, self._speeds(t, q, v, p), p)
 
     def user_functions(self, t, q, v, p=None):
-        return self.constrained.user_functions(t, q, self._speeds(t, q, v, p), p)
+        # The callbacks at speeds of the right shape: their indexing does not depend on the
+        # values, so the dependent speeds' solve (a Jacobian and a factorisation) is not
+        # needed to check it.
+        return self.constrained.user_functions(t, q, self._placed(q, v), p)
 
     def state_constraints(self, t, q, v, p=None):
         """(φ(t, q), none): the velocity constraints hold by construction of the speeds."""
