@@ -17,7 +17,7 @@ import pytest
 
 import jaxdyn
 
-from helpers import assert_close, central_difference
+from helpers import assert_close, central_difference, compiles
 
 pin = pytest.importorskip("pinocchio")
 pytest.importorskip("yourdfpy")
@@ -657,6 +657,9 @@ def test_inertial_parameters_from_torques(tmp_path):
     tau_new = np.stack([_planar_arm_by_hand(*x)[0] for x in zip(q_new, u_new, ud_new)])
 
     result = jaxdyn.fit_inertial_parameters(tree, q, u, ud, tau, prior)
+    with compiles() as count:  # new torques of the same shapes reuse the programs
+        jaxdyn.fit_inertial_parameters(tree, q, u, ud, 1.01 * tau, prior)
+    assert count() == 0
     # The fixed base is invisible to torques; the massless tip, welded to rod1, keeps its prior.
     assert result.links == ("rod0", "rod1")
     assert result.rank == 6

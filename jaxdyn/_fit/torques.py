@@ -120,13 +120,31 @@ def _physical(pi):
     return mass, com, inertia
 
 
-def _regressors(tree, q, u, ud, p, chunk):
-    """Y over the samples, (k, m, 10 N), `chunk` states at a time (memory bounded by it)."""
+@eqx.filter_jit
+def _regressors(tree, q, u, ud, root_weights, p, chunk):
+    """The weighted regressors √w Y over the samples, (k, m, 10 N), `chunk` states at a time
+    (memory bounded by it). Compiled as one program, kept per tree and shapes: eager, the map
+    over a new closure compiled its loop again at every call."""
     def one(state):
         q, u, ud = state
         return inverse_dynamics_regressor(tree, q, u, ud, p)
 
-    return jax.lax.map(one, (q, u, ud), batch_size=min(chunk, q.shape[0]))
+    regressor = jax.lax.map(one, (q, u, ud), batch_size=min(chunk, q.shape[0]))
+    return regressor * root_weights[:, :, None]
+
+
+@eqx.filter_jit
+def _least_squares(tree, regressor, tau, root_weights, p, fitted):
+    """The prior's π, and A π = b over the fitted links (`fitted`, a tuple of link indices)
+    with the others at the prior's values, with A's thin SVD U S Vᵀ: one program (eager, each
+    of its operations compiled apart)."""
+    k, m = tau.shape
+    fitted = np.asarray(fitted)
+    prior = inertial_parameters(tree, p, dtype=tau.dtype)
+    a = regressor[:, fitted].reshape(k * m, 10 * len(fitted))
+    b = (tau * root_weights).ravel() - regressor.reshape(k * m, -1) @ prior.ravel() \
+        + a @ prior[fitted].ravel()  # the links not fitted keep the prior's torques
+    return prior, a, b, *jnp.linalg.svd(a, full_matrices=False)
 
 
 def _log_det(pi):
@@ -247,10 +265,10 @@ def fit_inertial_parameters(
     unknown = sorted(set(links or ()) - set(names))
     if unknown:
         raise ValueError(f"links {unknown} are not in the tree (its links: {names}).")
-    regressor = _regressors(tree, q, u, ud, p, chunk) * root_weights[:, :, None]
+    regressor = _regressors(tree, q, u, ud, root_weights, p, chunk)
     regressor = regressor.reshape(k * m, len(names), 10)
     if links is None:
-        seen = np.asarray(jnp.any(regressor != 0, axis=(0, 2)))
+        seen = np.any(np.asarray(regressor) != 0, axis=(0, 2))
         links = [link.name for link, s in zip(tree.links, seen) if s and link.joint.nv]
     fitted = np.array([names.index(name) for name in links])
     for index in fitted:
@@ -261,13 +279,10 @@ def fit_inertial_parameters(
                              "to be fitted: load the robot with jaxdyn.from_urdf(path) "
                              "(parameters=True, the default).")
 
-    prior = inertial_parameters(tree, p, dtype=q.dtype)
-    a = regressor[:, fitted].reshape(k * m, 10 * len(fitted))
-    b = (tau * root_weights).ravel() - regressor.reshape(k * m, -1) @ prior.ravel() \
-        + a @ prior[fitted].ravel()  # the links not fitted keep the prior's torques
     # One SVD a = U S Vᵀ gives the rank, the minimum-norm least squares and the reduced
     # problem: ‖a π − b‖² = ‖S Vᵀ π − Uᵀ b‖² + const.
-    left, singular, directions = jnp.linalg.svd(a, full_matrices=False)
+    prior, a, b, left, singular, directions = _least_squares(
+        tree, regressor, tau, root_weights, p, tuple(int(i) for i in fitted))
     rank = int(np.sum(np.asarray(singular) > 1e-10 * float(singular[0])))
     c = left.T @ b
     least_squares = directions[:rank].T @ (c[:rank] / singular[:rank])
