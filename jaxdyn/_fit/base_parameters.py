@@ -14,8 +14,8 @@ with covariance s² (Y_bᵀ Y_b)⁻¹, s² = ‖Y_b β̂ − τ‖² / (rows −
 """
 
 import equinox as eqx
-import jax.scipy.linalg as jsl
 import numpy as np
+import scipy.linalg
 
 # The ten inertial parameters of a link, in `jaxdyn.inertial_parameters`' order.
 PARAMETER_NAMES = ("m", "mx", "my", "mz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
@@ -60,7 +60,9 @@ def base_parameters(regressor, forces, rank: int, links, unseen) -> BaseParamete
     `rank` independent columns found by QR with column pivoting; `unseen` (10 L − rank, 10 L)
     spans the combinations the regressor does not see (its null space)."""
     a, b = np.asarray(regressor, dtype=float), np.asarray(forces, dtype=float)
-    _, triangle, order = (np.asarray(x) for x in jsl.qr(a, mode="economic", pivoting=True))
+    # On the host (SciPy's LAPACK, as the rest of this report): eager, JAX's QR compiled
+    # each of its operations apart.
+    _, triangle, order = scipy.linalg.qr(a, mode="economic", pivoting=True)
     independent, dependent = order[:rank], order[rank:]
     absorbed = np.linalg.solve(triangle[:rank, :rank], triangle[:rank, rank:])  # K
     combinations = np.zeros((rank, a.shape[1]))

@@ -147,6 +147,11 @@ def _least_squares(tree, regressor, tau, root_weights, p, fitted):
     return prior, a, b, *jnp.linalg.svd(a, full_matrices=False)
 
 
+# Compiled once for the module (eager, each of their operations compiled apart).
+_pseudo_inertias = jax.jit(jax.vmap(_pseudo_inertia))
+_physical_all = jax.jit(jax.vmap(_physical))
+
+
 def _log_det(pi):
     """log det J(π) of one link."""
     return jnp.linalg.slogdet(_pseudo_inertia(pi))[1]
@@ -162,6 +167,9 @@ def _objective(pi, problem):
     divergence = (jnp.sum(prior_inverse * pseudo, axis=(1, 2))  # tr(J₀⁻¹ J), J₀⁻¹ symmetric
                   - jax.vmap(_log_det)(pi.reshape(-1, 10)))
     return 0.5 * residual @ residual + weight @ divergence
+
+
+_objective_value = jax.jit(_objective)
 
 
 @jax.jit
@@ -192,7 +200,7 @@ def _newton(problem, pi, tolerance, max_steps):
     """Damped Newton's method from the prior (Boyd and Vandenberghe, Convex Optimization,
     §9.5): stops when half the squared Newton decrement, which bounds the distance to the
     optimum near it, falls below `tolerance` relative to the objective's scale."""
-    scale = abs(float(_objective(pi, problem))) + 1e-300
+    scale = abs(float(_objective_value(pi, problem))) + 1e-300
     for steps in range(1, max_steps + 1):
         pi, decrement, _ = _newton_step(pi, problem)
         if 0.5 * float(decrement) < tolerance * scale:
@@ -340,30 +348,43 @@ def _consistent(r_matrix, c, largest, prior, links, prior_weight, tolerance, max
     """The consistent estimate π (L, 10) of the fitted links, minimising ½ ‖R π − c‖² plus
     the weighted log-det divergences from the prior's pseudo-inertias (`_objective`), by
     Newton's method from the prior; with whether it converged and its steps."""
-    # A prior whose pseudo-inertia is singular (a massless link) is nudged inside the cone.
-    pseudo = jax.vmap(_pseudo_inertia)(prior)
-    nudge = 1e-9 * jnp.max(jnp.trace(pseudo, axis1=1, axis2=2)) * jnp.eye(4, dtype=c.dtype)[None]
-    inside = np.linalg.eigvalsh(np.asarray(pseudo + nudge))[:, 0] > 0
+    start = _nudged_pseudo_inertias(prior)
+    inside = np.linalg.eigvalsh(np.asarray(start))[:, 0] > 0
     if not np.all(inside):
         raise ValueError(f"the prior of links {[links[i] for i in np.nonzero(~inside)[0]]} is "
                          "not a rigid body (its pseudo-inertia is not positive semi-definite): "
                          "give physically consistent prior masses, centres of mass and "
                          "inertias.")
-    start = pseudo + nudge
+    consistent, converged, num_steps = _newton(
+        *_problem(r_matrix, c, largest, start, prior_weight), tolerance, max_steps)
+    return consistent.reshape(-1, 10), converged, num_steps
+
+
+@jax.jit
+def _nudged_pseudo_inertias(prior):
+    """The prior's pseudo-inertias J₀ (L, 4, 4); one that is singular (a massless link) is
+    nudged inside the cone."""
+    pseudo = _pseudo_inertias(prior)
+    scale = jnp.max(jnp.trace(pseudo, axis1=1, axis2=2))
+    return pseudo + 1e-9 * scale * jnp.eye(4, dtype=prior.dtype)[None]
+
+
+@jax.jit
+def _problem(r_matrix, c, largest, start, prior_weight):
+    """`_objective`'s data (R, c, J₀⁻¹, the weights, RᵀR) and Newton's starting π."""
     weight = prior_weight * largest ** 2 * jnp.sum(start**2, axis=(1, 2))
     problem = (r_matrix, c, jnp.linalg.inv(start), weight, r_matrix.T @ r_matrix)
-    consistent, converged, num_steps = _newton(
-        problem, jax.vmap(_from_pseudo_inertia)(start).ravel(), tolerance, max_steps)
-    return consistent.reshape(-1, 10), converged, num_steps
+    return problem, jax.vmap(_from_pseudo_inertia)(start).ravel()
 
 
 def _with_estimates(tree, p, fitted, estimates):
     """A copy of `p` with each fitted link's mass, centre of mass and central inertia taken
     from its estimate π."""
     params = jax.tree_util.tree_map(lambda x: x, p)  # a copy: p itself stays the prior
-    for index, pi in zip(fitted, estimates):
+    physical = _physical_all(estimates)
+    for i, index in enumerate(fitted):
         link = tree.links[index]
-        for key, value in zip(("mass", "com", "inertia"), _physical(pi)):
+        for key, value in zip(("mass", "com", "inertia"), (x[i] for x in physical)):
             parameter = getattr(link, key)
             params[parameter.link] = {**params[parameter.link], parameter.key: value}
     return params
@@ -374,7 +395,7 @@ def _implausible(estimate, prior, links, identifiable) -> dict:
     consistency (the smallest eigenvalue of the pseudo-inertia below 10⁻⁶ of its trace),
     naming the link's parameters the data do not determine."""
     estimate, prior = np.asarray(estimate), np.asarray(prior)
-    pseudo = np.asarray(jax.vmap(_pseudo_inertia)(jnp.asarray(estimate)))
+    pseudo = np.asarray(_pseudo_inertias(jnp.asarray(estimate)))
     eigenvalues = np.linalg.eigvalsh(pseudo)
     found = {}
     for i, link in enumerate(links):
