@@ -62,7 +62,7 @@ def base_parameters(regressor, forces, rank: int, links, unseen) -> BaseParamete
     a, b = np.asarray(regressor, dtype=float), np.asarray(forces, dtype=float)
     # On the host (SciPy's LAPACK, as the rest of this report): eager, JAX's QR compiled
     # each of its operations apart.
-    _, triangle, order = scipy.linalg.qr(a, mode="economic", pivoting=True)
+    _, triangle, order = scipy.linalg.qr(a, mode="economic", pivoting=True)  # type: ignore[misc]
     independent, dependent = order[:rank], order[rank:]
     absorbed = np.linalg.solve(triangle[:rank, :rank], triangle[:rank, rank:])  # K
     combinations = np.zeros((rank, a.shape[1]))

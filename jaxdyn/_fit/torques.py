@@ -355,8 +355,8 @@ def _consistent(r_matrix, c, largest, prior, links, prior_weight, tolerance, max
                          "not a rigid body (its pseudo-inertia is not positive semi-definite): "
                          "give physically consistent prior masses, centres of mass and "
                          "inertias.")
-    consistent, converged, num_steps = _newton(
-        *_problem(r_matrix, c, largest, start, prior_weight), tolerance, max_steps)
+    problem, pi = _problem(r_matrix, c, largest, start, prior_weight)
+    consistent, converged, num_steps = _newton(problem, pi, tolerance, max_steps)
     return consistent.reshape(-1, 10), converged, num_steps
 
 
