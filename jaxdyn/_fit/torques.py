@@ -122,15 +122,18 @@ def _physical(pi):
 
 @eqx.filter_jit
 def _regressors(tree, q, u, ud, root_weights, p, chunk):
-    """The weighted regressors √w Y over the samples, (k, m, 10 N), `chunk` states at a time
-    (memory bounded by it). Compiled as one program, kept per tree and shapes: eager, the map
-    over a new closure compiled its loop again at every call."""
+    """The weighted regressors √w Y over the samples, (k m, N, 10), `chunk` states at a time
+    (memory bounded by it), and which of the N links they see (a nonzero column). Compiled as
+    one program, kept per tree and shapes: eager, the map over a new closure compiled its loop
+    again at every call."""
     def one(state):
         q, u, ud = state
         return inverse_dynamics_regressor(tree, q, u, ud, p)
 
     regressor = jax.lax.map(one, (q, u, ud), batch_size=min(chunk, q.shape[0]))
-    return regressor * root_weights[:, :, None]
+    regressor = (regressor * root_weights[:, :, None]).reshape(q.shape[0] * u.shape[1],
+                                                               len(tree.links), 10)
+    return regressor, jnp.any(regressor != 0, axis=(0, 2))
 
 
 @eqx.filter_jit
@@ -273,10 +276,9 @@ def fit_inertial_parameters(
     unknown = sorted(set(links or ()) - set(names))
     if unknown:
         raise ValueError(f"links {unknown} are not in the tree (its links: {names}).")
-    regressor = _regressors(tree, q, u, ud, root_weights, p, chunk)
-    regressor = regressor.reshape(k * m, len(names), 10)
+    regressor, seen = _regressors(tree, q, u, ud, root_weights, p, chunk)
     if links is None:
-        seen = np.any(np.asarray(regressor) != 0, axis=(0, 2))
+        seen = np.asarray(seen)
         links = [link.name for link, s in zip(tree.links, seen) if s and link.joint.nv]
     fitted = np.array([names.index(name) for name in links])
     for index in fitted:
