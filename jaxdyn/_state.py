@@ -128,7 +128,7 @@ def check_parameter_dtypes(p, dtype):
             f"jax.tree.map(lambda x: x.astype(jnp.{dtype}), p), or the state to theirs.")
 
 
-def numbers_as_arrays(tree, dtype=None):
+def numbers_as_arrays(tree, dtype=None) -> Any:
     """Python floats and ints in `tree` as arrays, so that they are traced rather than
     compiled in: a new parameter value, time or tolerance then reuses the compiled program.
 
@@ -154,6 +154,8 @@ def numbers_as_arrays(tree, dtype=None):
         # call; the arguments of a call, a tuple, are walked one by one.)
         if type(tree) is tuple:
             return tuple(converted(x) for x in tree)
+        if tree is None or type(tree) in (float, int, bool):  # (a time, a tolerance)
+            return None if tree is None else convert(tree)
         leaves, treedef = jax.tree_util.tree_flatten(tree)
         if remembered_arrays(leaves, treedef) or not any(isinstance(x, (float, int))
                                                          for x in leaves):

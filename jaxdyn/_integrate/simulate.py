@@ -157,10 +157,10 @@ def simulate(
     dtype = state_dtype(q0, u0)
     if inputs is not None:
         dynamics = dynamics.with_inputs(inputs)
-    if isinstance(solver, AbstractStructurePreserving):
+    if _structure_preserving(type(solver)):
         stepsize_controller = fixed_steps(solver, rtol, atol, dt0, stepsize_controller)
     elif stepsize_controller is None:  # defaults filled in here, so that they are traced too
-        default = 1e-10 if jnp.finfo(dtype).bits == 64 else 1e-6
+        default = 1e-10 if np.dtype(dtype).itemsize == 8 else 1e-6
         rtol = default if rtol is None else rtol
         atol = default if atol is None else atol
     elif rtol is not None or atol is not None:
@@ -196,9 +196,10 @@ def simulate(
         # it): its failures, diffrax's checks of arguments included, send the call on to the
         # full program.
         with library_checks_as_nan() if lean else contextlib.nullcontext():
-            return _simulate(dynamics, q0, u0, numbers, (
-                dense, save, solver, stepsize_controller, budget, adjoint, throw, reachable,
-                lean, events, max_events))
+            # (The modules apart from the plain options, which the dispatch then reads as
+            # one tree: `jaxdyn._compile.filter_jit`.)
+            return _simulate(dynamics, solver, stepsize_controller, adjoint, events, q0, u0,
+                             numbers, (dense, save, budget, throw, reachable, lean, max_events))
 
     # (Outside any trace every value is known: the walk over the leaves is skipped.)
     if not jax_core.trace_state_clean() and not all(
@@ -224,9 +225,19 @@ def simulate(
     return run(max_steps, lean=False)
 
 
+@functools.cache
+def _structure_preserving(solver_type) -> bool:
+    """Whether a solver of this type is a structure-preserving method (by type: an abstract
+    class's check costs ~5 µs of an eager call)."""
+    return issubclass(solver_type, AbstractStructurePreserving)
+
+
 def _succeeded(solution) -> bool:
     """Whether every member of an eager solve succeeded (read on the host, no dispatch)."""
     result = _concrete_value(solution.result._value)
+    assert result is not None  # (called with values)
+    if result.ndim == 0:  # (one solve: its code read as a number, ~7 µs less)
+        return result.item() == RESULTS.successful._value
     return not np.any(np.asarray(result) != RESULTS.successful._value)
 
 
@@ -239,10 +250,10 @@ def _concrete_value(x):
 
 
 @filter_jit
-def _simulate(dynamics, q0, u0, numbers, options):
+def _simulate(dynamics, solver, stepsize_controller, adjoint, events, q0, u0, numbers,
+              options):
     p, t0, t1, ts, rtol, atol, dt0 = numbers
-    (dense, save, solver, stepsize_controller, max_steps, adjoint, throw, reachable, lean,
-     events, max_events) = options
+    dense, save, max_steps, throw, reachable, lean, max_events = options
     q0, u0, p, t0, t1 = _checked_start(dynamics, q0, u0, p, t0, t1, solver)
     # The lean program (called with values) carries no check that calls the host: its
     # invalid arguments only make it fail, and the full program, run then, names them. So it
@@ -439,6 +450,8 @@ _STATE_QUANTITIES = ("q", "u", "qd")
 def _check_save(save, dynamics):
     """Trace-time check of `save`: state quantities, and the records the formulation offers
     (`AbstractDynamics.saved_records`)."""
+    if save and all(name in _STATE_QUANTITIES for name in save):  # (the default, cheaply)
+        return
     offered = dynamics.saved_records if isinstance(dynamics, AbstractDynamics) else ()
     if save and all(name in _STATE_QUANTITIES or name in offered for name in save):
         return
