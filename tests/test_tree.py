@@ -627,6 +627,24 @@ def test_later_calls_of_the_robotics_functions_and_a_gradient_compile_nothing():
     assert not np.allclose(first[1], second[1])
 
 
+def test_kanes_and_gibbs_appells_first_simulate_of_a_tree_compiles_the_solve_alone():
+    """The check of the callbacks' indexing, traced with the solve, evaluates the user's
+    callbacks only: not the kinematic matrix, whose blocks of constants (a revolute joint's
+    1) it would evaluate one operation at a time, a program each (two per joint). Kane's
+    and Gibbs–Appell's equations of the same chain then agree."""
+    tree = chain_tree(4)
+    q0, u0 = np.array([0.4, -0.3, 0.2, 0.1]), np.array([0.5, 0.0, -0.4, 0.3])
+    finals = []
+    for dynamics in (jaxdyn.Kane.from_system(tree), jaxdyn.GibbsAppell.from_system(tree)):
+        with compiles() as count:
+            sol = jaxdyn.simulate(dynamics, q0, u0, None, t1=0.3, rtol=1e-11, atol=1e-11)
+        # the solve's program, and at most one small program of diffrax's own (its result
+        # code's first `bitwise_or` in a process)
+        assert count() <= 2, count()
+        finals.append(np.concatenate([sol.q[-1], sol.u[-1]]))
+    assert_close(finals[0], finals[1], rtol=0, atol=1e-9)
+
+
 def test_parameters_changed_in_place_are_read_again_and_not_kept_alive():
     """The dispatch remembers a robot's parameters by the identities of their arrays (not
     read again at each call): a dict changed in place, an array replaced by a Python float,

@@ -79,7 +79,10 @@ class GibbsAppell(AbstractDynamics):
         q = check_vector(q, "q")
         u = check_vector(u, "u")
         t = jnp.asarray(t, q.dtype)
-        self._kinematic_matrix(t, q, u, p)  # checks the shapes
+        if self.system is not None:
+            self.system.check_speeds(t, q, u, p, self.kinematic_map)
+        else:  # (K of the user's kinematic map, its shape checked)
+            kinematic_matrix(self.kinematic_map, self.time_dependent, t, q, p, u)
         return t, q, u
 
     def energy_terms(self, t, q, u, p=None):

@@ -54,7 +54,7 @@ class Kane(AbstractDynamics):
     def _check(self, t, q, u, p):
         q, u = check_vector(q, "q"), check_vector(u, "u")
         t = jnp.asarray(t, q.dtype)
-        self.system.kinematic_matrix(t, q, p, self.kinematic_map, u)  # checks the shapes
+        self.system.check_speeds(t, q, u, p, self.kinematic_map)
         return t, q, u
 
     def coordinate_rates(self, t, q, u, p=None):

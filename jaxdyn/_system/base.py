@@ -81,6 +81,14 @@ class AbstractMultibody(eqx.Module):
 
     # -- what follows for every description ---------------------------------------------------
 
+    def check_speeds(self, t, q, u, p, kinematic_map=None) -> None:
+        """Raise where q and u do not fit the description: by default, K formed (the
+        user's `kinematic_map` called) and its shape checked against them. A description
+        whose shapes are known without forming K checks them alone (a tree: K is blocks
+        of constants, which the trace-time check of the callbacks' indexing would
+        evaluate one operation at a time)."""
+        self.kinematic_matrix(t, q, p, kinematic_map, u)
+
     def coordinate_rates(self, t, q, u, p, kinematic_map=None):
         """q̇ = K(t, q, p) u."""
         return self.kinematic_matrix(t, q, p, kinematic_map) @ u

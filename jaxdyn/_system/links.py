@@ -170,3 +170,19 @@ def welded_inertias(bodies, p, dtype=None):
                                                * np.eye(3, dtype=dtype)[None]
                                                - d[:, :, None] * d[:, None, :]))
     return mass, centre, jnp.einsum("bk,kij->bij", summed, about_centre)
+
+
+def own_inertias(links, p, dtype=None):
+    """(masses (N,), centres of mass (N, 3), central inertias (N, 3, 3)) of N links, each
+    its own values (no link welded to another)."""
+    masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in links])
+    dtype = masses.dtype if dtype is None else dtype
+    coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in links])
+    zero = jnp.zeros((3, 3), dtype)
+    inertias = jnp.stack([zero if link.inertia is None
+                          else jnp.asarray(_value(link.inertia, p), dtype) for link in links])
+    for name, value, shape in (("com", coms, (len(links), 3)),
+                               ("inertia", inertias, (len(links), 3, 3))):
+        if value.shape != shape:
+            raise ValueError(f"Every link's {name} must have shape {shape[1:]}.")
+    return masses.astype(dtype), coms, inertias

@@ -40,8 +40,8 @@ from .._state import check_vector, frozen_constant
 from . import spatial, tree_levels
 from .base import AbstractMultibody
 from .joints import Fixed
-from .links import (Link, LinkLoad, _rotation, _value, _vector3, _Welded, users_callable,
-                    welded_inertias)
+from .links import (Link, LinkLoad, _rotation, _value, _vector3, _Welded, own_inertias,
+                    users_callable, welded_inertias)
 from .tree_levels import _stacked
 
 JOINT_ARGS = ("q", "u", "p")
@@ -404,14 +404,14 @@ class RigidBodyTree(AbstractMultibody):
         bodies = {i: link.mass for i, link in enumerate(self.links)
                   if isinstance(link.mass, _Welded)}
         if not bodies:
-            return _own_inertias(self.links, p, dtype)
+            return own_inertias(self.links, p, dtype)
         welded = list(bodies)
         combined = welded_inertias([(body.links, body.rotations, body.translations)
                                     for body in bodies.values()], p, dtype)
         alone = [i for i in range(len(self.links)) if i not in welded]
         if not alone:
             return combined
-        own = _own_inertias([self.links[i] for i in alone], p, combined[0].dtype)
+        own = own_inertias([self.links[i] for i in alone], p, combined[0].dtype)
         order = np.argsort(alone + welded)
         return tuple(jnp.concatenate([a, b])[order] for a, b in zip(own, combined))
 
@@ -439,6 +439,9 @@ class RigidBodyTree(AbstractMultibody):
                 qs, us = q_slices[link.name], u_slices[link.name]
                 pieces.append(link.joint.rate_matrix(q[qs]) @ u[us])
         return jnp.concatenate(pieces) if pieces else jnp.zeros(0, q.dtype)
+
+    def check_speeds(self, t, q, u, p, kinematic_map=None) -> None:
+        self._check_state(q, u, kinematic_map)
 
     def _check_state(self, q, u, kinematic_map=None):
         if kinematic_map is not None:
@@ -585,17 +588,3 @@ class RigidBodyTree(AbstractMultibody):
                 forces, loads, _value(self.gravity, p) if users_callable(self.gravity)
                 else None, values)
 
-
-def _own_inertias(links, p, dtype=None):
-    """(masses, centres of mass, central inertias) of links, each its own values."""
-    masses = jnp.stack([jnp.asarray(_value(link.mass, p)) for link in links])
-    dtype = masses.dtype if dtype is None else dtype
-    coms = jnp.stack([jnp.asarray(_value(link.com, p), dtype) for link in links])
-    zero = jnp.zeros((3, 3), dtype)
-    inertias = jnp.stack([zero if link.inertia is None
-                          else jnp.asarray(_value(link.inertia, p), dtype) for link in links])
-    for name, value, shape in (("com", coms, (len(links), 3)),
-                               ("inertia", inertias, (len(links), 3, 3))):
-        if value.shape != shape:
-            raise ValueError(f"Every link's {name} must have shape {shape[1:]}.")
-    return masses.astype(dtype), coms, inertias
