@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Coordinates, MassMatrix, Params, RealScalarLike, Speeds
-from ._errors import check_static_indexing, error_if
+from ._errors import error_if
+from ._static_indexing import check_static_indexing
 from ._linalg import (
     NONFINITE_FORCING,
     SINGULAR_CONSTRAINTS,

@@ -22,7 +22,6 @@ import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax._src import core as jax_core
-from jax.experimental import checkify
 
 _where: list[str] = []  # host-side: the message of the first failed check of the current call
 
@@ -286,41 +285,3 @@ def _block(tree):
         return tree
     jax.block_until_ready(leaves)
     return tree
-
-
-def check_static_indexing(fn, *args):
-    """Raise if `fn(*args)` indexes an array out of bounds with a static index.
-
-    JAX clamps out-of-range indices, so a callback written for more coordinates than it is
-    given (``qd[1]`` with one coordinate) would silently read the wrong entry. On concrete
-    arguments `fn` runs once under `checkify`'s index checks (a small compiled program, cached
-    per system). Under an outer trace, compile-time evaluation computes the bounds checks of
-    static indices at trace time (their operands are constants); checks that depend on traced
-    values stay symbolic and are skipped. `fn` should be cheap (the user callbacks alone, no
-    derivatives): what it stages is unused and dropped by XLA.
-    """
-    leaves = jax.tree_util.tree_leaves((fn, args))
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        with jax.ensure_compile_time_eval():
-            error = _checked(fn, args)
-            try:
-                message = error.get()
-            except jax.errors.ConcretizationTypeError:  # depends on traced values
-                return
-    else:
-        # An eager call: one small compiled program (cached per system), not compile-time
-        # evaluation, which would run (and compile) every constant operation one at a time.
-        message = _checked_jit(fn, args).get()
-    if message is not None:
-        raise ValueError(
-            f"A callback indexes past the end of its input: {message.strip()} Check that the "
-            "energies, forces and kinematics are written for the number of coordinates and "
-            "speeds you pass (q of shape (n,), speeds of shape (m,))."
-        )
-
-
-def _checked(fn, args):
-    return checkify.checkify(fn, errors=checkify.index_checks)(*args)[0]
-
-
-_checked_jit = eqx.filter_jit(_checked)

@@ -455,6 +455,60 @@ def test_a_links_value_indexing_past_its_parameter_is_an_error():
         jaxdyn.simulate(jaxdyn.ArticulatedBody(tree), jnp.zeros(1), jnp.zeros(1), p, t1=0.1)
 
 
+def _gathers(q, qd, p):  # reads with static indices of every form, some past the end
+    table = jnp.arange(12.0).reshape(3, 4)
+    return (q[-1], qd[1:3], table[2, q.shape[0]], table[jnp.array([0, 2])],
+            jax.lax.dynamic_slice(table, (1, 2), (2, 2)), table.at[1, 5].get(mode="clip"))
+
+
+@pytest.mark.parametrize("index", [0, 1, 2, -1, -2, -3])
+def test_the_index_check_under_a_trace_agrees_with_checkify_run_on_values(index):
+    """Under a trace the index check is decided in NumPy from the checked callbacks' jaxpr;
+    called with values, JAX runs the same checks (`checkify`) as a program. Both give the
+    same verdict and message for static reads in and out of bounds, negative, gathered and
+    sliced (the reference: JAX's own evaluation)."""
+    from jaxdyn._static_indexing import _checked_jit, _error_from_constants
+
+    def fn(q, qd, p):
+        return q[index], _gathers(q, qd, p)
+
+    q, qd = jnp.array([0.3, 0.4]), jnp.array([0.1, -0.2])
+    expected = _checked_jit(fn, (q, qd, None)).get()
+    messages = []
+    jax.jit(lambda q, qd: messages.append(
+        _error_from_constants(fn, (q, qd, None)).get()))(q, qd)
+    assert messages == [expected]
+    assert (expected is None) == (-2 <= index <= 1)
+
+
+def test_constants_in_the_callbacks_are_not_compiled_one_by_one_at_a_first_call(monkeypatch):
+    """A Lagrangian whose T and V build constant arrays (a rotation of constants, an offset
+    vector), as users write them: the index check, traced with the first solve, compiled
+    each constant operation as a program of its own (20 programs here, 51 for a free body
+    in quaternions); now the first `simulate` compiles its solve alone."""
+    def system():  # new functions at each call: a system traced and compiled anew
+        def kinetic(q, qd, p):
+            axes = jnp.array([[0.0, -1.0], [1.0, 0.0]]) @ jnp.diag(jnp.array([2.0, 3.0]))
+            return 0.5 * qd @ (axes.T @ axes + jnp.eye(2)) @ qd
+
+        def potential(q, p):
+            offset = jnp.linspace(0.0, 1.0, 2) * jnp.array([1.5, -0.5]) + 0.25
+            return 0.5 * jnp.sum((q - offset) ** 2) + jnp.cos(jnp.array([0.1, 0.2])) @ q
+
+        return jaxdyn.Lagrangian(kinetic, potential)
+
+    simulate_module = sys.modules["jaxdyn._integrate.simulate"]
+    # The process's own first programs (diffrax's result code, a cosine of constants folded
+    # by XLA's kernel) compiled by a first solve of the same equations without the check:
+    monkeypatch.setattr(simulate_module, "check_static_indexing", lambda *args: None)
+    q0, u0 = np.array([0.3, -0.2]), np.zeros(2)
+    jaxdyn.simulate(system(), q0, u0, None, t1=0.2)
+    monkeypatch.undo()
+    with compiles() as count:
+        jaxdyn.simulate(system(), q0, u0, None, t1=0.2)
+    assert count() == 1, count()
+
+
 # ---------------------------------------------------------------------------------------------
 # Hostile arguments of simulate: tolerances, save times, step budget, parameters, callbacks
 # ---------------------------------------------------------------------------------------------

@@ -19,16 +19,12 @@ from .._dynamics import (
     mass_matrix_blocks,
     straight_line_size,
 )
-from .._errors import (
-    check_finite,
-    check_static_indexing,
-    library_checks_as_nan,
-    reports_state,
-)
+from .._errors import check_finite, library_checks_as_nan, reports_state
 from .._linalg import factorise
 from .._runge_kutta import UnrolledStages
 from .._sensitivities import MAX_FORWARD, differentiable_size
 from .._solution import RESULTS, Solution, promoted
+from .._static_indexing import check_static_indexing
 from .._state import check_parameter_dtypes, check_vector, numbers_as_arrays, state_dtype
 from .._variational import AbstractStructurePreserving
 from .failures import diagnose, guard, mass_matrix_condition, raise_failures
