@@ -94,13 +94,12 @@ def _evaluate(jaxpr, consts, args):
 def _apply(eqn, inputs):
     params = eqn.params
     rule = _NUMPY.get(eqn.primitive.name)
-    if rule is not None:
-        out = rule(*inputs, **params)
-    elif isinstance(params.get("jaxpr", params.get("call_jaxpr")), ClosedJaxpr):
-        # a nested jit (`jnp.where`, `clip`) or a function with custom derivatives
-        inner = params.get("jaxpr", params.get("call_jaxpr"))
+    out = None if rule is None else rule(*inputs, **params)
+    # (a nested jit, as `jnp.where` and `clip` make, or a function with custom derivatives)
+    inner = params.get("jaxpr", params.get("call_jaxpr"))
+    if out is None and isinstance(inner, ClosedJaxpr):
         out = _evaluate(inner.jaxpr, [np.asarray(c) for c in inner.consts], inputs)
-    else:  # a primitive without a NumPy rule: JAX's own, on constants
+    elif out is None:  # a primitive without a NumPy rule: JAX's own, on constants
         with jax.ensure_compile_time_eval():
             out = eqn.primitive.bind(*inputs, **params)
         out = [np.asarray(x) for x in out] if eqn.primitive.multiple_results else out
@@ -130,14 +129,34 @@ def _iota(*, dtype, shape, dimension, **_):
         d for d in range(len(shape)) if d != dimension]), shape)
 
 
+def _div(a, b):
+    """XLA's division: integers rounded toward zero (None, for JAX's own, at a zero divisor
+    or an overflow)."""
+    if np.issubdtype(a.dtype, np.inexact):
+        with np.errstate(all="ignore"):
+            return np.divide(a, b)
+    if (b == 0).any() or (np.issubdtype(a.dtype, np.signedinteger) and (b == -1).any()):
+        return None
+    quotient = np.abs(a) // np.abs(b)
+    return np.where((a < 0) != (b < 0), -quotient, quotient)
+
+
+def _rem(a, b):
+    """XLA's remainder: the dividend's sign (C's `fmod`)."""
+    if not np.issubdtype(a.dtype, np.inexact) and ((b == 0).any() or (b == -1).any()):
+        return None
+    with np.errstate(all="ignore"):
+        return np.fmod(a, b)
+
+
 def _reduction(fn):
     return lambda x, *, axes, **_: fn(x, axis=tuple(axes))
 
 
 # The operations of checkify's bounds checks and of index arithmetic, in NumPy (whose integer
-# arithmetic wraps as XLA's does). Integer division and remainder are left to JAX (XLA
-# rounds toward zero, NumPy down).
+# arithmetic wraps as XLA's does). A rule returns None where it leaves the case to JAX.
 _NUMPY = {
+    "div": _div, "rem": _rem,
     "lt": np.less, "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal,
     "eq": np.equal, "ne": np.not_equal,
     "add": np.add, "sub": np.subtract, "mul": np.multiply, "neg": np.negative,

@@ -455,9 +455,12 @@ def test_a_links_value_indexing_past_its_parameter_is_an_error():
         jaxdyn.simulate(jaxdyn.ArticulatedBody(tree), jnp.zeros(1), jnp.zeros(1), p, t1=0.1)
 
 
-def _gathers(q, qd, p):  # reads with static indices of every form, some past the end
+def _gathers(q, qd, p):  # reads with static indices of every form, all within bounds
     table = jnp.arange(12.0).reshape(3, 4)
-    return (q[-1], qd[1:3], table[2, q.shape[0]], table[jnp.array([0, 2])],
+    # (integer division and remainder as jnp forms them from XLA's: −7 // 2 = −4, which
+    # reads the first of 4; −7 % 4 = 1)
+    rounded = jnp.arange(4)[jnp.array(-7) // 2] + jnp.arange(4)[jnp.array(-7) % 4]
+    return (q[-1], qd[1:3], table[2, q.shape[0]], table[jnp.array([0, 2])], rounded,
             jax.lax.dynamic_slice(table, (1, 2), (2, 2)), table.at[1, 5].get(mode="clip"))
 
 
