@@ -24,6 +24,7 @@ import numpy as np
 from jax.extend import core as jex
 
 from ._state import transferred
+from ._unroll_positions import POSITIONS, scatter_targets
 
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
     "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
@@ -523,9 +524,9 @@ def _constant_array(x):
 
 
 # Data movement with indices known at trace time (static indexing): find where each element
-# goes by applying the primitive to the elements' positions, in NumPy for the gathers and
-# slices that indexing produces (no XLA program compiled per indexing pattern), by the
-# primitive itself otherwise.
+# goes by applying the primitive to the elements' positions, in NumPy for the gathers, slices
+# and scatters that indexing produces (`jaxdyn._unroll_positions`: no XLA program compiled
+# per indexing pattern), by the primitive itself in the cases left to it.
 _MOVED = {"gather": (0,), "dynamic_slice": (0,), "scatter": (0, 2), "dynamic_update_slice": (0, 1)}
 
 
@@ -542,100 +543,32 @@ def _by_position(eqn, ins):
             if constant is None:
                 return None
             arrays.append(constant)
-    rule = _POSITIONS.get(eqn.primitive.name)
-    if rule is None:
+    rule = POSITIONS.get(eqn.primitive.name)
+    target = NotImplemented if rule is None else rule(eqn.params, *arrays)
+    if target is NotImplemented:  # a case left to the primitive, run on the positions
         with jax.ensure_compile_time_eval():
             target = np.asarray(eqn.primitive.bind(*map(jnp.asarray, arrays), **eqn.params))
-    else:
-        target = rule(eqn.params, *arrays)
-    if target is None or (target == 0).any():  # out of bounds: the primitive's own semantics
-        return None
+    if target is None or (np.asarray(target) == 0).any():  # out of bounds: the primitive's
+        return None  # own semantics
     out = np.empty(target.shape, dtype=object)
     for index in np.ndindex(target.shape):
         out[index] = pool[target[index] - 1]
     return out
 
 
-def _clamped_starts(starts, shape, sizes):
-    """XLA's clamping of slice starts: into [0, dim − size]."""
-    return [int(min(max(int(s), 0), d - z)) for s, d, z in zip(starts, shape, sizes)]
-
-
-def _dynamic_slice_positions(params, operand, *starts):
-    sizes = params["slice_sizes"]
-    begin = _clamped_starts(starts, operand.shape, sizes)
-    return operand[tuple(slice(b, b + z) for b, z in zip(begin, sizes))]
-
-
-def _dynamic_update_slice_positions(params, operand, update, *starts):
-    begin = _clamped_starts(starts, operand.shape, update.shape)
-    out = operand.copy()
-    out[tuple(slice(b, b + z) for b, z in zip(begin, update.shape))] = update
-    return out
-
-
-def _gather_positions(params, operand, indices):
-    """XLA's gather (operation semantics, index vector in the last dimension of `indices`),
-    element by element; None where a mode other than clamping or in-bounds is asked for."""
-    numbers, sizes = params["dimension_numbers"], params["slice_sizes"]
-    mode = params["mode"]
-    fill = mode == jax.lax.GatherScatterMode.FILL_OR_DROP
-    if mode not in (jax.lax.GatherScatterMode.CLIP, jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS,
-                    jax.lax.GatherScatterMode.FILL_OR_DROP):
-        return None
-    offset_dims = numbers.offset_dims
-    batch_shape = indices.shape[:-1]
-    offset_operand_dims = [d for d in range(operand.ndim)
-                           if d not in numbers.collapsed_slice_dims
-                           and d not in numbers.operand_batching_dims]
-    rank = len(batch_shape) + len(offset_operand_dims)
-    batch_dims = [d for d in range(rank) if d not in offset_dims]
-    out_shape = [0] * rank
-    for d, b in zip(batch_dims, batch_shape):
-        out_shape[d] = b
-    for d, o in zip(offset_dims, offset_operand_dims):
-        out_shape[d] = sizes[o]
-    out = np.zeros(out_shape, dtype=operand.dtype)
-    for index in np.ndindex(*out_shape):
-        batch = tuple(index[d] for d in batch_dims)
-        vector = indices[batch]
-        start = [0] * operand.ndim
-        for k, d in enumerate(numbers.start_index_map):
-            start[d] = int(vector[k])
-        for d, b in zip(numbers.operand_batching_dims, numbers.start_indices_batching_dims):
-            start[d] = batch[b]
-        if fill:
-            if any(s < 0 or s + z > n for s, z, n in zip(start, sizes, operand.shape)):
-                continue  # filled: position 0
-        else:
-            start = _clamped_starts(start, operand.shape, sizes)
-        position = list(start)
-        for d, o in zip(offset_dims, offset_operand_dims):
-            position[o] += index[d]
-        out[index] = operand[tuple(position)]
-    return out
-
-
-_POSITIONS = {"gather": _gather_positions, "dynamic_slice": _dynamic_slice_positions,
-              "dynamic_update_slice": _dynamic_update_slice_positions}
-
-
 def _scatter_add(eqn, ins):
-    """operand + Σ updates at their static destinations."""
+    """operand + Σ updates at their static destinations (`scatter_targets`; the primitive
+    on arrays where it leaves the case to XLA)."""
     operand, indices, updates = ins
     index_array = _constant_array(indices)
     if index_array is None:
         return None
-    dtype = eqn.invars[0].aval.dtype
+    targets = scatter_targets(eqn.params, operand.shape, index_array, updates.shape)
+    if targets is None:
+        return None
     out = operand.copy()
-    for index in np.ndindex(updates.shape):
-        one_hot = np.zeros(updates.shape, dtype)
-        one_hot[index] = 1
-        with jax.ensure_compile_time_eval():
-            landed = np.asarray(eqn.primitive.bind(
-                jnp.zeros(operand.shape, dtype), jnp.asarray(index_array),
-                jnp.asarray(one_hot), **eqn.params))
-        for target in zip(*np.nonzero(landed)):
+    for index, target in targets.items():
+        if target is not None:
             out[target] = _add(out[target], updates[index])
     return out
 

@@ -15,7 +15,7 @@ import pytest
 import jaxdyn
 from jaxdyn._unroll import Symbol, is_constant, structure, unrolled
 
-from helpers import DOUBLE_PENDULUM, ELASTIC_PENDULUM, assert_close, rod_chain
+from helpers import DOUBLE_PENDULUM, ELASTIC_PENDULUM, assert_close, compiles, rod_chain
 
 RNG = np.random.default_rng(0)
 X = jnp.asarray(RNG.normal(size=3))
@@ -224,11 +224,23 @@ def test_structure_of_the_double_pendulum_is_dense():
     lambda x: jnp.take_along_axis(x, jnp.array([[0], [2], [1]]), axis=1),
     lambda x: jax.lax.dynamic_slice(x, (jnp.int32(2), jnp.int32(1)), (2, 2)),
     lambda x: jax.lax.dynamic_update_slice(x, -x[:2, :2], (jnp.int32(-1), jnp.int32(3))),
+    lambda x: x.at[1, 2].set(-x[0, 0]),
+    lambda x: x.at[:, 1].set(2.0 * x[:, 3]),
+    lambda x: x.at[-1, jnp.array([0, 3])].set(x[0, :2]),
+    lambda x: x.at[jnp.array([1, 5])].set(x[:2] + 1.0, mode="drop"),
+    lambda x: x.at[jnp.array([1, 5])].set(x[:2] + 1.0, mode="clip"),
+    lambda x: x.at[jnp.array([2, 0])].add(x[:2]),
+    lambda x: x.at[jnp.array([1, 1]), 2].add(x[:2, 0]),
+    lambda x: x.at[1:3, 2].set(0.5),
 ])
 def test_static_indexing_unrolls_to_what_xla_computes(index):
-    """Gathers and dynamic slices with indices known at trace time, located element by element
-    in NumPy (XLA's clamping included), against XLA running the same program."""
+    """Gathers, dynamic slices and scatters (`.at[...].set`, `.add`) with indices known at
+    trace time, located element by element in NumPy (XLA's clamping and dropping included),
+    against XLA running the same program; no program is compiled to locate them."""
     x = jnp.arange(1.0, 13.0).reshape(3, 4)
+    with compiles() as count:  # traced, not run: a program compiled would be a location's
+        jax.make_jaxpr(lambda x: unrolled(index, x))(x)
+    assert count() == 0, count()
     assert_close(unrolled(index, x), index(x), rtol=0)
 
 
