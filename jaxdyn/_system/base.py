@@ -84,9 +84,8 @@ class AbstractMultibody(eqx.Module):
     def check_speeds(self, t, q, u, p, kinematic_map=None) -> None:
         """Raise where q and u do not fit the description: by default, K formed (the
         user's `kinematic_map` called) and its shape checked against them. A description
-        whose shapes are known without forming K checks them alone (a tree: K is blocks
-        of constants, which the trace-time check of the callbacks' indexing would
-        evaluate one operation at a time)."""
+        whose sizes are known without forming K compares q and u with them (a tree: its
+        joints' sizes, rather than a block of K traced per joint at every check)."""
         self.kinematic_matrix(t, q, p, kinematic_map, u)
 
     def coordinate_rates(self, t, q, u, p, kinematic_map=None):
