@@ -549,6 +549,13 @@ def test_tree_errors():
             0.0, tree.neutral_configuration(), np.zeros(13), None)
     with pytest.raises(ValueError, match="This tree has 13 coordinates"):
         jaxdyn.ArticulatedBody(tree).accelerations(0.0, np.zeros(3), np.zeros(11), None)
+    # Kane's and Gibbs–Appell's equations of a tree compare q and u with its sizes
+    q = tree.neutral_configuration()
+    for dynamics in (jaxdyn.Kane.from_system(tree), jaxdyn.GibbsAppell.from_system(tree)):
+        with pytest.raises(ValueError, match="This tree has 11 speeds"):
+            dynamics.accelerations(0.0, q, np.zeros(12), None)
+        with pytest.raises(ValueError, match="This tree has 11 speeds"):
+            jaxdyn.simulate(dynamics, q, np.zeros(12), None, t1=0.1)
     with pytest.raises(ValueError, match="a non-zero 3-vector"):
         jaxdyn.Revolute((0.0, 0.0, 0.0))
     massless = jaxdyn.RigidBodyTree([jaxdyn.Link("a", jaxdyn.Revolute())])
