@@ -19,6 +19,8 @@ import numpy as np
 from jax.experimental import checkify
 from jax.extend.core import ClosedJaxpr, Literal
 
+from ._unroll_positions import dynamic_slice_positions
+
 
 def check_static_indexing(fn, *args):
     """Raise if `fn(*args)` indexes an array out of bounds with a static index.
@@ -114,12 +116,6 @@ def _broadcast_in_dim(x, shape, broadcast_dimensions, **_):
     return np.broadcast_to(expanded, shape)
 
 
-def _dynamic_slice(x, *starts, slice_sizes):
-    # XLA's clamping: a start is moved so that the slice lies within the operand.
-    starts = [int(np.clip(s, 0, n - k)) for s, n, k in zip(starts, x.shape, slice_sizes)]
-    return x[tuple(slice(s, s + k) for s, k in zip(starts, slice_sizes))]
-
-
 def _select_n(which, *cases):
     return np.choose(which.astype(np.int64), np.broadcast_arrays(*cases))
 
@@ -170,7 +166,9 @@ _NUMPY = {
     "reshape": lambda x, *, new_sizes, **_: np.reshape(x, new_sizes),
     "squeeze": lambda x, *, dimensions: np.squeeze(x, axis=tuple(dimensions)),
     "concatenate": lambda *xs, dimension: np.concatenate(xs, axis=dimension),
-    "dynamic_slice": _dynamic_slice,
+    # (XLA's clamping of the starts, as the straight-line evaluation locates slices)
+    "dynamic_slice": lambda x, *starts, slice_sizes: dynamic_slice_positions(
+        {"slice_sizes": slice_sizes}, x, *starts),
     "iota": _iota,
     "argmin": lambda x, *, axes, index_dtype: np.argmin(x, axis=axes[0]).astype(index_dtype),
     "argmax": lambda x, *, axes, index_dtype: np.argmax(x, axis=axes[0]).astype(index_dtype),
