@@ -23,7 +23,7 @@ from ._state import numbers_as_arrays, state_dtype
 
 _BATCH = PartitionSpec("batch")
 # Every failure code (equinox enumerations list their members only in `_name_to_item`).
-_FAILURES = [item for item in RESULTS._name_to_item.values() if item != RESULTS.successful]
+_FAILURES = [item for item in RESULTS._name_to_item.values() if item is not RESULTS.successful]
 # Members per device are padded to a multiple of LANES: XLA computes a vmapped solve on a CPU
 # in SIMD vectors of 4 (AVX2) or 8 (AVX-512) float64 members, and a member left over after the
 # full vectors is computed by other (scalar) code that differs in the last bits, which an

@@ -668,14 +668,16 @@ def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
     the small batched block products of a tree's recursions several times slower), lets XLA
     compile loops of up to a megabyte per iteration as one function, keeps a user's own
     choice of any of them, and warns, naming the switches, when JAX started before jaxdyn was
-    imported."""
+    imported. The import itself computes nothing: JAX's backend is not started, and no
+    program compiled, until the user's first computation."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     loops = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
     ours = f"--xla_cpu_use_fusion_emitters=false --xla_cpu_experimental_ynn_fusion_type= {loops}"
     scripts = {
         "first": ("import os, jaxdyn, jax.numpy as jnp; jnp.ones(1); "
                   "print(os.environ['XLA_FLAGS'])", {}),
-        "chosen": ("import os, jaxdyn; print(os.environ['XLA_FLAGS'])",
+        "chosen": ("import os, jaxdyn, jax._src.xla_bridge as xb; "
+                   "print(os.environ['XLA_FLAGS']); print(xb.backends_are_initialized())",
                    {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}),
         "both chosen": ("import os, jaxdyn; print(os.environ['XLA_FLAGS'])",
                         {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=dot "
@@ -689,8 +691,10 @@ def test_import_chooses_xla_cpu_code_generators_or_says_it_could_not():
     done = {name: (process.wait(), *process.communicate()) for name, process in running.items()}
     assert done["first"][0] == 0, done["first"][2]
     assert done["first"][1].strip() == ours
-    assert done["chosen"][1].strip() == ("--xla_cpu_use_fusion_emitters=true "
-                                         f"--xla_cpu_experimental_ynn_fusion_type= {loops}")
+    flags, started = done["chosen"][1].strip().splitlines()
+    assert flags == ("--xla_cpu_use_fusion_emitters=true "
+                     f"--xla_cpu_experimental_ynn_fusion_type= {loops}")
+    assert started == "False", "import jaxdyn started JAX's backend"
     assert done["both chosen"][1].strip() == ("--xla_cpu_experimental_ynn_fusion_type=dot "
                                               f"--xla_cpu_use_fusion_emitters=true {loops}")
     assert done["late"][0] != 0
