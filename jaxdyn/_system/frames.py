@@ -10,8 +10,8 @@ order (ω, v), v the velocity of the frame's origin, expressed
 
 and the frame Jacobian J (6, m) maps the speeds to them, (ω, v) = J(q) u (Featherstone, Rigid
 Body Dynamics Algorithms, 2008, §4.6; Pinocchio lists v before ω). Accelerations are classical:
-ω̇ and the second derivative of the origin's position, (ω̇, v̇) = J u̇ + J̇ u, formed as one JVP
-of the velocity along (q̇ = K u, u̇).
+ω̇ and the second derivative of the origin's position, (ω̇, v̇) = J u̇ + J̇ u, formed by the
+outward recursion of the links' accelerations (§5.3).
 
 The centroidal momentum (Orin, Goswami and Lee, 2013) is h_G = (k_G, l), the angular momentum
 about the centre of mass and the linear momentum, in world axes; h_G = A_G(q) u with A_G the
@@ -118,23 +118,68 @@ def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="w
     return jnp.zeros((6, tree.num_speeds), q.dtype).at[:, u_index].set(columns)
 
 
+def _accelerations(chain, q, u, ud):
+    """(R_WC, ω, v, ω̇, v̇) of the last link of `chain` (see `_ancestors`): its orientation,
+    angular velocity and origin's velocity, and the rates of their components in its own
+    (moving) axes, by the outward recursion of Featherstone (Rigid Body Dynamics Algorithms,
+    2008, §5.3) in each link's axes. With the joint's pose (R_PC, r_PC) in its parent and its
+    twist (ω_J, v_J) = S u (S constant in the link's axes, so that its rate is S u̇), the
+    parent's motion seen in the child's axes, ω̃ = R_PCᵀ ω_P and ṽ = R_PCᵀ (v_P + ω_P × r_PC),
+    and Ṙ_PC = R_PC [ω_J]×, ṙ_PC = R_PC v_J:
+
+        ω̇_C = R_PCᵀ ω̇_P − ω_J × ω̃ + S_ω u̇,
+        v̇_C = R_PCᵀ (v̇_P + ω̇_P × r_PC) + ω̃ × v_J − ω_J × ṽ + S_v u̇,
+
+    from the world at rest. (One pass carrying six 3-vectors, where differentiating the
+    velocity recursion carries the tangents of every pose as well.)"""
+    rotation, translation, omega_j, velocity_j = chain.joint_motion(q, u)
+    alpha_j, accel_j = chain.joint_twists(ud)
+
+    def step(parent, link):
+        rotation_wp, omega_p, velocity_p, alpha_p, accel_p = parent
+        rotation_pc, origin_pc, omega_jc, velocity_jc, alpha_jc, accel_jc = link
+        omega, velocity = spatial.motion_to_child(rotation_pc, origin_pc, omega_p, velocity_p)
+        alpha = (spatial.tmatvec(rotation_pc, alpha_p) - spatial.cross(omega_jc, omega)
+                 + alpha_jc)
+        accel = (spatial.tmatvec(rotation_pc, accel_p + spatial.cross(alpha_p, origin_pc))
+                 + spatial.cross(omega, velocity_jc) - spatial.cross(omega_jc, velocity)
+                 + accel_jc)
+        return (spatial.matmul(rotation_wp, rotation_pc), omega + omega_jc,
+                velocity + velocity_jc, alpha, accel)
+
+    zero = jnp.zeros(3, q.dtype)
+    root = (jnp.eye(3, dtype=q.dtype), zero, zero, zero, zero)
+    states = chain.forward(step, root, (rotation, translation, omega_j, velocity_j, alpha_j,
+                                        accel_j))
+    return tuple(x[-1] for x in states)
+
+
+def _point_accelerations(chain, point, q, u, ud):
+    """(R_WC, v_P, ω̇, a_P): the last link's orientation, the velocity of `point` (in the
+    link's axes), the link's angular acceleration and the point's classical acceleration, all
+    in the link's axes: v_P = v + ω × P, a_P = v̇ + ω̇ × P + ω × v_P (the rate of v_P's
+    components in the moving axes, plus the axes' own turning)."""
+    rotation, omega, velocity, alpha, accel = _accelerations(chain, q, u, ud)
+    velocity = velocity + spatial.cross(omega, point)
+    accel = accel + spatial.cross(alpha, point) + spatial.cross(omega, velocity)
+    return rotation, velocity, alpha, accel
+
+
 @public_function(num_static=2)
 def frame_acceleration(tree: RigidBodyTree, frame, q, u, ud, p=None, *, point=None,
                        axes="world"):
     """(ω̇, v̇) (6,): the classical accelerations of the frame, J u̇ + J̇ u: the rate of its
     angular velocity and the second derivative of its origin's position, in world or local
-    axes (for local axes, the world-axes rates expressed in the frame's axes)."""
+    axes (for local axes, the world-axes rates expressed in the frame's axes). Formed by the
+    outward recursion of link accelerations (Featherstone, 2008, §5.3)."""
     _check_axes(axes)
     q, u, ud = _checked(tree, q, u, ud)
     chain, q_index, u_index = _ancestors(tree, _index(tree, frame))
-    point, q, u, ud = _point(point, q.dtype), take(q, q_index), take(u, u_index), take(ud, u_index)
-    qd = chain.coordinate_rates(jnp.zeros((), q.dtype), q, u, p)
-    _, rates = jax.jvp(lambda q, u: _velocity(chain, point, "world", q, u, p), (q, u),
-                       (qd, ud))
-    if axes == "local":
-        rotation = chain.link_poses(jnp.zeros((), q.dtype), q, p)[0][-1]
-        rates = jnp.concatenate([rotation.T @ rates[:3], rotation.T @ rates[3:]])
-    return rates
+    rotation, _, alpha, accel = _point_accelerations(
+        chain, _point(point, q.dtype), take(q, q_index), take(u, u_index), take(ud, u_index))
+    if axes == "world":
+        alpha, accel = rotation @ alpha, rotation @ accel
+    return jnp.concatenate([alpha, accel])
 
 
 def _counted(tree, p, dtype, include_fixed):
@@ -314,20 +359,17 @@ class HeldPoints(eqx.Module):
         return jnp.concatenate(rows)
 
     def velocities_and_accelerations(self, q, u, ud, p=None):
-        """(φ̇ = C u, φ̈ = C u̇ + γ) (3k,): each point's velocity and classical acceleration,
-        one JVP of the velocity recursion along (q̇, u̇)."""
+        """(φ̇ = C u, φ̈ = C u̇ + γ) (3k,): each point's velocity and classical acceleration
+        in world axes, by the outward recursion of link accelerations (`frame_acceleration`)."""
         self._checked(q, u)
-        t = jnp.zeros((), q.dtype)
         velocities, accelerations = [], []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
-            point, q_chain, u_chain = point.astype(q.dtype), take(q, q_index), take(u, u_index)
-            qd = chain.coordinate_rates(t, q_chain, u_chain, p)
-            velocity, rates = jax.jvp(
-                lambda q, u: _velocity(chain, point, "world", q, u, p), (q_chain, u_chain),
-                (qd, take(ud, u_index)))
-            velocities.append(velocity[3:])
-            accelerations.append(rates[3:])
+            rotation, velocity, _, accel = _point_accelerations(
+                chain, point.astype(q.dtype), take(q, q_index), take(u, u_index),
+                take(ud, u_index))
+            velocities.append(rotation @ velocity)
+            accelerations.append(rotation @ accel)
         return jnp.concatenate(velocities), jnp.concatenate(accelerations)
 
     def velocity_terms(self, q, u, p=None):
