@@ -210,7 +210,8 @@ def test_frame_accelerations_are_the_rates_of_the_frame_velocities_for_every_joi
     derivative of the frame's velocity along the motion, d/dt (ω, v_P) in world axes: the
     JVP of `frame_velocity` along (q̇ = K(q) u, u̇), by autodiff; on a tree with every joint
     type (a free base, spherical, planar, prismatic, revolute and fixed joints, rotated joint
-    frames) and points off the links' origins."""
+    frames) and points off the links' origins. (All in one compiled program, which the test
+    compiles sooner than each call's own.)"""
     turn = np.array([[0.0, -1.0, 0.0], [0.6, 0.0, 0.8], [-0.8, 0.0, 0.6]])
     tree = jaxdyn.RigidBodyTree([
         jaxdyn.Link("base", jaxdyn.Free(), mass=2.0),
@@ -227,28 +228,38 @@ def test_frame_accelerations_are_the_rates_of_the_frame_velocities_for_every_joi
     rng = np.random.default_rng(11)
     q = np.asarray(tree.neutral_configuration()) + 0.3 * rng.standard_normal(tree.num_coordinates)
     u, ud = rng.standard_normal(tree.num_speeds), rng.standard_normal(tree.num_speeds)
-    qd = tree.coordinate_rates(0.0, q, u, None)
     frames = {"base": (0.1, 0.2, -0.3), "ball": (0.0, 0.0, 0.0), "plate": (0.2, -0.1, 0.05),
               "slide": (-0.1, 0.3, 0.2), "tool": (0.02, 0.01, -0.04)}
-    for frame, point in frames.items():
-        rates = jax.jvp(lambda q, u: jaxdyn.frame_velocity(tree, frame, q, u, point=point),
-                        (q, u), (qd, ud))[1]
-        assert_close(jaxdyn.frame_acceleration(tree, frame, q, u, ud, point=point), rates,
-                     rtol=1e-12, atol=1e-12, err_msg=frame)
-        rotation = jaxdyn.frame_pose(tree, frame, q)[0]
-        local = jnp.concatenate([rotation.T @ rates[:3], rotation.T @ rates[3:]])
-        assert_close(jaxdyn.frame_acceleration(tree, frame, q, u, ud, point=point,
-                                               axes="local"),
-                     local, rtol=1e-12, atol=1e-12, err_msg=frame)
     hold = jaxdyn.HeldPoints.at(tree, list(frames), q, points=list(frames.values()))
-    velocities, accelerations = hold.velocities_and_accelerations(jnp.asarray(q), u, ud)
-    for k, (frame, point) in enumerate(frames.items()):
-        assert_close(velocities[3 * k:3 * k + 3],
-                     jaxdyn.frame_velocity(tree, frame, q, u, point=point)[3:],
-                     rtol=1e-12, atol=1e-12, err_msg=frame)
-        assert_close(accelerations[3 * k:3 * k + 3],
-                     jaxdyn.frame_acceleration(tree, frame, q, u, ud, point=point)[3:],
-                     rtol=1e-12, atol=1e-12, err_msg=frame)
+
+    @jax.jit  # (one program for all of it)
+    def both(q, u, ud):
+        qd = tree.coordinate_rates(0.0, q, u, None)
+        out = {}
+        for frame, point in frames.items():
+            velocity, rates = jax.jvp(
+                lambda q, u: jaxdyn.frame_velocity(tree, frame, q, u, point=point), (q, u),
+                (qd, ud))
+            rotation = jaxdyn.frame_pose(tree, frame, q)[0]
+            out[frame] = dict(
+                velocity=velocity, rates=rates,
+                local=jnp.concatenate([rotation.T @ rates[:3], rotation.T @ rates[3:]]),
+                world_recursion=jaxdyn.frame_acceleration(tree, frame, q, u, ud, point=point),
+                local_recursion=jaxdyn.frame_acceleration(tree, frame, q, u, ud, point=point,
+                                                          axes="local"))
+        return out, hold.velocities_and_accelerations(q, u, ud)
+
+    out, (velocities, accelerations) = both(jnp.asarray(q), u, ud)
+    for k, frame in enumerate(frames):
+        ours = out[frame]
+        assert_close(ours["world_recursion"], ours["rates"], rtol=1e-12, atol=1e-12,
+                     err_msg=frame)
+        assert_close(ours["local_recursion"], ours["local"], rtol=1e-12, atol=1e-12,
+                     err_msg=frame)
+        assert_close(velocities[3 * k:3 * k + 3], ours["velocity"][3:], rtol=1e-12,
+                     atol=1e-12, err_msg=frame)
+        assert_close(accelerations[3 * k:3 * k + 3], ours["rates"][3:], rtol=1e-12,
+                     atol=1e-12, err_msg=frame)
 
 
 def test_a_points_jacobian_gives_its_velocity(hopper):
