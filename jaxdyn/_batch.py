@@ -311,8 +311,8 @@ def _laid_out(setup, members, shared):
     return _members(dynamics, members, shared, options)
 
 
-_SOLVE_CHUNK = {None: filter_jit(_sharded, compiler_options=BATCHED_LOOPS),
-                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS | BATCHED_LOOPS),
+_SOLVE_CHUNK = {None: filter_jit(_sharded),
+                "fusion": filter_jit(_sharded, compiler_options=FUSION_EMITTERS),
                 "events": filter_jit(_laid_out, compiler_options=BATCHED_LOOPS)}
 
 

@@ -14,10 +14,14 @@ under IEEE semantics:
 - data movement (broadcasts, slices, gathers with static indices, transposes) becomes plain
   renaming of scalars;
 - the structure of the result is visible: an entry that folds to a constant is known to be
-  constant (used to skip work a system does not need).
+  constant (used to skip work a system does not need);
+- an operation already at hand is not written again, nor one that is a different expression
+  of it, whatever way the user wrote T (cos²θ + sin²θ is 1, a sign meets a sum as a
+  subtraction: `jaxdyn._unroll_numbering`).
 
 Every scalar operation is the same JAX primitive as in the original program, so values are
-unchanged and JAX differentiates and batches the result as usual. Primitives without an
+unchanged (to rounding, where an identity replaced an expression) and JAX differentiates and
+batches the result as usual. Primitives without an
 element-wise rule (loops, linear solves, custom derivative rules) are evaluated on whole arrays
 assembled from their elements, so every program can be unrolled; the budget below keeps the
 unrolled program small, and larger programs run as they were written.
@@ -40,10 +44,10 @@ from jax.extend import core as jex
 
 from ._chunking import chunked_vmap
 from ._custom_jvp import batch_axis_first
+from ._unroll_numbering import _NUMBERING
 from ._unroll_rules import (
     _ANALYSIS,
     _BUDGET,
-    _NUMBERING,
     Symbol,
     _eval,
     _Fallback,

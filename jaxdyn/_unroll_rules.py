@@ -7,7 +7,9 @@ apart so that the rules per primitive can grow without the entry points. An elem
 scalar (a constant known at trace time), a 0-d JAX value (an emitted scalar operation) or, in a
 structure analysis, a `Symbol`. Element-wise primitives fold and simplify (the symbolic-zero
 identities of autodiff); data movement, contractions, reductions and static indexing have rules
-that rename or combine elements (`_STRUCTURAL`); any other primitive runs on whole arrays
+that rename or combine elements (`_STRUCTURAL`); an operation is emitted once, and not at all
+where it equals an element at hand (`jaxdyn._unroll_numbering`), and signs are carried
+outwards to the sums they meet (`_signs_absorbed`); any other primitive runs on whole arrays
 assembled from its elements (`_on_arrays`). The budget and the analysis switch are context
 variables that `jaxdyn._unroll` sets around an evaluation. Nothing here imports
 `jaxdyn._unroll`: the dependency runs one way.
@@ -24,6 +26,8 @@ import numpy as np
 from jax.extend import core as jex
 
 from ._state import transferred
+from ._unroll_numbering import negation_of
+from ._unroll_numbering import numbered as _numbered
 from ._unroll_positions import POSITIONS, scatter_targets
 
 _EXACT = {  # element-wise primitives that NumPy evaluates exactly as XLA does (IEEE)
@@ -78,47 +82,16 @@ def _spend(count):
             raise _Fallback
 
 
-# Value numbering within one `evaluate`: an operation on the same elements is emitted once.
-# Autodiff forms the same products again and again (sin θ, cos θ and their products in every
-# entry of Lagrange's M and f): of the operations a chain of two rods writes out, 46% by
-# Lagrange's equations, 60% by Kane's and 33% by Gibbs–Appell's were repeats. XLA would merge
-# them too, but only after JAX had traced them and XLA's passes had walked them, at every
-# place the equations enter a program. The budget still counts every operation asked for,
-# repeats included, so that the bounds on what is written out (`jaxdyn._unroll.MAX_ELEMENTS`,
-# `MAX_DIFFERENTIATED`, the emitters' choice) choose as they were measured to. The table maps
-# (operation, its elements) to the result and keeps the elements alive, so that the identity
-# of an element is not reused while the table holds it.
-_NUMBERING: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
-    "jaxdyn_unroll_numbering", default=None)
-_COMMUTATIVE = {"add", "add_any", "mul"}  # exactly, in IEEE arithmetic
-
-
-def _element_key(x):
-    # a constant by its value, bit for bit (0.0 and -0.0 differ); an element by its identity
-    return (x.dtype, x.tobytes()) if isinstance(x, np.generic) else id(x)
-
-
 def numbered(operation, xs, extra, make):
     """`make()`, the operation `operation` (a name or a function) on the elements `xs` with the
-    hashable `extra`, or its result already emitted within this evaluation; counted against
-    the budget either way."""
+    hashable `extra`, or an element of this evaluation equal to it (`jaxdyn._unroll_numbering`);
+    counted against the budget either way, so that the bounds on what is written out
+    (`jaxdyn._unroll.MAX_ELEMENTS`, `MAX_DIFFERENTIATED`, the emitters' choice) choose as they
+    were measured to."""
     _spend(1)
-    table = _NUMBERING.get()
-    if table is None or _ANALYSIS.get():  # (a structure analysis emits nothing)
+    if _ANALYSIS.get():  # (a structure analysis emits nothing)
         return make()
-    elements = tuple(_element_key(x) for x in xs)
-    if operation in _COMMUTATIVE:
-        elements = tuple(sorted(elements, key=repr))
-    key = (operation, elements, extra)
-    try:
-        hit = table.get(key)
-    except TypeError:  # parameters that cannot be hashed: not numbered
-        return make()
-    if hit is not None:
-        return hit[1]
-    out = make()
-    table[key] = (xs, out)
-    return out
+    return _numbered(operation, xs, extra, make, negate=_negate, multiply=_mul)
 
 
 def _emit(primitive, xs, dtypes, params):
@@ -285,7 +258,56 @@ def _scalar(primitive, name, params, xs, dtypes, out_dtype):
     simpler = _simplify(name, params, xs, out_dtype)
     if simpler is not None:
         return simpler
+    if name in _SIGNED and not _ANALYSIS.get():
+        unsigned = [negation_of(x) for x in xs]
+        if any(x is not None for x in unsigned):
+            return _signs_absorbed(
+                name, params, xs, unsigned,
+                # (the same operation keeps its parameters, such as `mul`'s out_dtype; the
+                # sums it becomes, add and sub, have none)
+                lambda other, ys: _scalar(_SIGNED[other], other,
+                                          params if other == name else {}, ys, dtypes,
+                                          out_dtype))
     return _emit(primitive, xs, dtypes, params)
+
+
+# Operations through which a sign passes exactly in IEEE arithmetic (and, for the odd and even
+# functions, in XLA's and NumPy's implementations, which are symmetric).
+_SIGNED = {"neg": jax.lax.neg_p, "add": jax.lax.add_p, "add_any": jax.lax.add_p,
+           "sub": jax.lax.sub_p, "mul": jax.lax.mul_p, "div": jax.lax.div_p,
+           "sin": jax.lax.sin_p, "tan": jax.lax.tan_p, "sinh": jax.lax.sinh_p,
+           "tanh": jax.lax.tanh_p, "cos": jax.lax.cos_p, "cosh": jax.lax.cosh_p,
+           "integer_pow": jax.lax.integer_pow_p, "square": jax.lax.square_p}
+_ODD = {"sin", "tan", "sinh", "tanh"}
+
+
+def _signs_absorbed(name, params, xs, unsigned, apply):
+    """`name` on `xs`, where some of them are negations −x' (`unsigned` holds x' there, else
+    None), with the signs carried outwards: (−a)·b = −(a·b), a + (−b) = a − b, sin(−a) =
+    −sin a, cos(−a) = cos a, …, so that a sign written by a rotation matrix or a derivative
+    costs no operation of its own where it meets a sum, and two signs cancel. `apply(name,
+    operands)` applies an operation."""
+    plain = [x if u is None else u for x, u in zip(xs, unsigned)]
+    negated = [u is not None for u in unsigned]
+    if name == "neg":
+        return plain[0]
+    if name in ("mul", "div"):
+        result = apply(name, plain)
+        return _negate(result) if negated[0] != negated[1] else result
+    if name in ("add", "add_any", "sub"):
+        # ±a ± b with a, b the unsigned operands
+        (a, b), a_negated = plain, negated[0]
+        b_negated = negated[1] != (name == "sub")
+        if a_negated and b_negated:
+            return _negate(apply("add", [a, b]))
+        if a_negated:
+            return apply("sub", [b, a])
+        return apply("sub" if b_negated else "add", [a, b])
+    if name in _ODD:
+        return _negate(apply(name, plain))
+    if name == "integer_pow" and params["y"] % 2:
+        return _negate(apply(name, plain))
+    return apply(name, plain)  # even: cos, cosh, squares and even powers
 
 
 def _fold(primitive, name, params, xs, dtypes, out_dtype):
@@ -358,7 +380,11 @@ def _simplify(name, params, xs, out_dtype):
 
 
 def _negate(x):
-    return x if isinstance(x, Symbol) else jax.lax.neg(x)
+    if isinstance(x, Symbol):
+        return x
+    # (numbered, but not counted: the budgets were measured without it)
+    return _numbered("neg", (x,), ((x.dtype,), ()), lambda: jax.lax.neg(x), negate=_negate,
+                     multiply=_mul)
 
 
 # -- data movement and reductions --------------------------------------------------------------

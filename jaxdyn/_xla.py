@@ -17,10 +17,12 @@ and "Loops as one function"):
   one compiled function (per state in a batch of 1024, the G1 humanoid's forward dynamics
   12.0 → 8.7 µs, its mass matrix 8.1 → 5.8; a double pendulum's `simulate` over 100 s
   6.4 → 2.8 ms, a chain of 10 rods' 200 → 39 ms). A loop so compiled runs on one core, where
-  the runtime spreads the large kernels of a batch over the cores: `simulate_batch` compiles
-  its solves without it (`jaxdyn._compile.BATCHED_LOOPS`), and a `jax.vmap` of `simulate`
-  under your own `jax.jit` of 256 small systems runs 1.5× slower with it on two cores
-  (benchmarks/LOG.md, "Loops as one function").
+  the runtime spreads the large kernels of a batch over the cores; measured on two cores, a
+  vmapped solve of small systems still runs as fast or faster as one function (1024 double
+  pendulums, T as 2-vectors: 485 against 663 ms), except near a few hundred members (256:
+  147 against 127 ms); hybrid batches are compiled without it
+  (`jaxdyn._compile.BATCHED_LOOPS`; benchmarks/LOG.md, "Loops as one function" and
+  "Identities in the written-out code").
 
 The switches are read when JAX first starts its CPU backend, so they are set here, before
 jaxdyn creates any array, unless the user chose values of their own. Where JAX started first,
