@@ -153,6 +153,11 @@ _POINTS = 6
 # Values agree within this many times their rounding bounds.
 _SLACK = 16.0
 _EPS = float(np.finfo(np.float64).eps)
+# A term of a sum this small beside the sum's terms at every point is not seen in its values.
+_SEEN = 1e-6
+# Values are followed while their rounding bounds stay below this (inputs are drawn from
+# [−2, 2]: the equations of a system stay far below it unless a random pivot is tiny).
+_ROUNDED = 1e-8
 
 
 class _Samples:
@@ -204,6 +209,14 @@ class _Samples:
                 if operation in ("add", "add_any", "sub"):
                     v = a + b if operation != "sub" else a - b
                     bound = da + db
+                    # A term below the other's rounding at every point is not seen in the
+                    # sum's values there (2·10¹³ + x at points where a random pivot was
+                    # tiny), though it may not be at the actual point: such a sum is not
+                    # followed, nor is what is formed from it.
+                    scale = np.abs(a) + np.abs(b)
+                    if any(not isinstance(x, np.generic) and np.all(np.abs(o) <= _SEEN * scale)
+                           for x, o in zip(xs, (a, b))):
+                        return None
                 elif operation == "mul":
                     v = a * b
                     bound = np.abs(b) * da + np.abs(a) * db
@@ -221,7 +234,9 @@ class _Samples:
                 v = value(a)
                 bound = slope(a, v) * da
             bound = bound + 2 * _EPS * np.abs(v)  # the operation's own rounding, ≤ 1 ulp
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(bound))):
+        # (and values whose rounding is no longer small at the points, where the relation
+        # between their terms says little about the relation at other points)
+        if not (np.all(np.isfinite(v)) and np.all(bound <= _ROUNDED)):
             return None
         return dtype, v, bound
 
