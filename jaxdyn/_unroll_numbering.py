@@ -19,10 +19,13 @@ Two kinds of sameness are recognised.
   identity testing (Schwartz 1980, Zippel 1979): a non-constant analytic function agrees with
   a constant, or with another function, at a handful of random points with probability zero,
   and the tolerance is the values' rounding, not a relative threshold, so that an expression
-  that varies by more than its rounding is never taken for another. Only operations analytic
-  wherever they are defined are followed (+, −, ·, ÷, integer powers, sin, cos, tan, exp, the
-  hyperbolic functions): an identity they satisfy on an open set of points holds at every
-  point where both sides are defined (the identity theorem). The result of any other
+  that varies by more than its rounding is never taken for another. Where the points cannot
+  show a term (a sum with a term below the other's rounding at every point, values whose
+  rounding is no longer small because a random pivot was tiny), the result is not followed.
+  Only operations analytic wherever they are defined are followed (+, −, ·, ÷, integer
+  powers, sin, cos, tan, exp, the hyperbolic functions): an identity they satisfy on an open
+  set of points holds at every point where both sides are defined (the identity theorem).
+  The result of any other
   operation (a comparison, a selection, √, log, a whole-array primitive) and every input is
   an independent variable, with values of its own: what holds for every value of an
   independent variable holds for its actual value.
