@@ -30,7 +30,7 @@ Two kinds of sameness are recognised.
   an independent variable, with values of its own: what holds for every value of an
   independent variable holds for its actual value.
 
-Each operation emitted is the same JAX primitive as in the original program; where an identity
+Each operation emitted is a JAX primitive of the original program's kind; where an identity
 replaces an expression, the value it gives differs from the original by rounding (1 − (cos²θ +
 sin²θ) is 0 here and ±1 ulp there), and its derivatives are those of the same function.
 """

@@ -271,8 +271,8 @@ def _scalar(primitive, name, params, xs, dtypes, out_dtype):
     return _emit(primitive, xs, dtypes, params)
 
 
-# Operations through which a sign passes exactly in IEEE arithmetic (and, for the odd and even
-# functions, in XLA's and NumPy's implementations, which are symmetric).
+# Operations through which a sign passes: exactly in IEEE arithmetic for +, −, ·, ÷ and powers;
+# for the odd and even functions, to the rounding of their implementations at worst.
 _SIGNED = {"neg": jax.lax.neg_p, "add": jax.lax.add_p, "add_any": jax.lax.add_p,
            "sub": jax.lax.sub_p, "mul": jax.lax.mul_p, "div": jax.lax.div_p,
            "sin": jax.lax.sin_p, "tan": jax.lax.tan_p, "sinh": jax.lax.sinh_p,
