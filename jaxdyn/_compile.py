@@ -119,14 +119,6 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
 FUSION_EMITTERS_MAX = 800
 FUSION_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
 
-# A hybrid batch's solve keeps its loops as XLA's runtime runs them (`jaxdyn._xla`, small
-# loops): the runtime spreads the large kernels of a batch over the cores, where a loop
-# compiled as one function runs on one (measured in 2026-11 on smooth solves, 256 double
-# pendulums with T as 2-vectors: 98 ms against 192). Smooth batches no longer take it: measured
-# again on two cores (2026-12-07, benchmarks/LOG.md, "Identities in the written-out code"),
-# 1024 of them ran 1.4-1.8× faster as one function, 256 and 16 384 as fast.
-BATCHED_LOOPS = {"xla_disable_hlo_passes": "small-while-loop-hoisting"}
-
 
 def batch_emitters(size, platform) -> dict | None:
     """XLA's compiler options for a vmapped solve on `platform` of equations of `size` scalar

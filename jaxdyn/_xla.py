@@ -20,9 +20,9 @@ and "Loops as one function"):
   the runtime spreads the large kernels of a batch over the cores; measured on two cores, a
   vmapped solve of small systems still runs as fast or faster as one function (1024 double
   pendulums, T as 2-vectors: 485 against 663 ms), except near a few hundred members (256:
-  147 against 127 ms); hybrid batches are compiled without it
-  (`jaxdyn._compile.BATCHED_LOOPS`; benchmarks/LOG.md, "Loops as one function" and
-  "Identities in the written-out code").
+  147 against 127 ms), and so does `simulate_batch` (which compiled its solves without it
+  until measured again; benchmarks/LOG.md, "Loops as one function" and "Identities in the
+  written-out code").
 
 The switches are read when JAX first starts its CPU backend, so they are set here, before
 jaxdyn creates any array, unless the user chose values of their own. Where JAX started first,
