@@ -11,8 +11,9 @@ argument structure, a `jax.jit` of the array leaves alone, so that a repeated ca
 import contextlib
 import functools
 import gc
+import operator
 import weakref
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -75,34 +76,38 @@ def filter_jit(fn, compiler_options=None, *, checks_on_host=False):
     @functools.wraps(fn)
     def wrapper(*args):
         leaves, treedef, parts = _flatten(args)
-        if any(_TRACER in part.kinds for part in parts):
+        if any(part.tracer for part in parts):
             return fallback(*args)
-        kinds = [k for part in parts for k in part.kinds]
-        dynamic = [i for i, k in enumerate(kinds) if k is _ARRAY]
-        arrays = [leaves[i] for i in dynamic]
-        # Typed, so that equal values of different types (1, 1.0, True) stay apart.
-        static = tuple(item for part in parts for item in part.static)
         try:
             # (with JAX's switch for compile time over run time, under which jaxdyn also
             # traces other forms of some programs: `jaxdyn._integrate.simulate._stepper`)
-            key = (treedef, static, tuple(part.avals for part in parts),
+            key = (treedef, tuple(part.static for part in parts),
+                   tuple(part.avals for part in parts),
                    jax.config.read("jax_disable_most_optimizations"), checks_as_nan_active())
             entry = cache.get(key)
         except TypeError:  # an unhashable option
             return fallback(*args)
         if entry is None:
-            entry = cache[key] = _Entry(fn, treedef, leaves, dynamic, compiler_options)
+            kinds = [k for part in parts for k in part.kinds]
+            entry = cache[key] = _Entry(fn, treedef, leaves,
+                                        [i for i, k in enumerate(kinds) if k is _ARRAY],
+                                        compiler_options)
+        arrays = entry.arrays_of(leaves)
         if not jax_core.trace_state_clean():
             out = entry.nested(*arrays)
         elif not hasattr(entry, "out_treedef"):
             with gc_paused():  # the first call traces and compiles
                 out = jax.block_until_ready(entry.compiled(*arrays))
         else:
-            # Ready before returning (one batched wait on the arrays, not a walk of the output
-            # pytree), so that an error raised by a check inside reaches the caller from here.
-            out = jax.block_until_ready(entry.compiled(*arrays))
-        return jax.tree_util.tree_unflatten(
-            entry.out_treedef, _merge(entry.out_static, entry.out_dynamic, out))
+            out = entry.compiled(*arrays)
+            # Ready before returning, so that an error raised by a check inside reaches the
+            # caller from here. The outputs of one program are ready together: one wait,
+            # after the output is assembled while the program runs.
+            result = _assembled(entry, out)
+            if out:
+                out[0].block_until_ready()
+            return result
+        return _assembled(entry, out)
 
     return wrapper
 
@@ -153,10 +158,15 @@ class _Entry:
     # Set by the first call of `compiled`, which traces `arrays_only`.
     out_treedef: Any  # a jax.tree_util.PyTreeDef: an alias, which pyright refuses as a type
     out_dynamic: list[int]
-    out_static: dict[int, Any]
+    # The output's leaves with its static ones in place (None when all are arrays).
+    out_template: list | None
+    # Where the program returns an array once for several outputs, the gather of its outputs
+    # into them (else None).
+    out_repeated: Callable | None
 
     def __init__(self, fn, treedef, leaves, dynamic, compiler_options):
         template = list(leaves)
+        self.arrays_of = _getter(dynamic)
 
         def arrays_only(*arrays):
             filled = list(template)
@@ -166,9 +176,19 @@ class _Entry:
             out_leaves, self.out_treedef = jax.tree_util.tree_flatten(out)
             kinds = [_kind(type(x)) for x in out_leaves]
             self.out_dynamic = [i for i, k in enumerate(kinds) if k is not _STATIC]
-            self.out_static = {i: x for i, (x, k) in enumerate(zip(out_leaves, kinds))
-                               if k is _STATIC}
-            return [out_leaves[i] for i in self.out_dynamic]
+            self.out_template = None if _STATIC not in kinds else [
+                x if k is _STATIC else None for x, k in zip(out_leaves, kinds)]
+            # An array returned twice (a `Lagrangian`'s q̇, which is its u) leaves the program
+            # once: each output costs its dispatch ~2 µs.
+            unique, positions = [], []
+            for i in self.out_dynamic:
+                positions.append(next((j for j, x in enumerate(unique)
+                                       if x is out_leaves[i]), len(unique)))
+                if positions[-1] == len(unique):
+                    unique.append(out_leaves[i])
+            self.out_repeated = (None if len(unique) == len(self.out_dynamic)
+                                 else _getter(positions))
+            return unique
 
         # The template's arrays are replaced at every call: drop them, so that the first
         # call's inputs are not kept alive by the cache.
@@ -183,29 +203,65 @@ class _Entry:
         self.nested = jax.jit(arrays_only)
 
 
-def _merge(static, dynamic_positions, dynamic_values):
-    leaves = [None] * (len(static) + len(dynamic_positions))
-    for i, x in static.items():
-        leaves[i] = x
+def _assembled(entry, out):
+    """The output of `entry`'s function from the arrays its program returned."""
+    if entry.out_repeated is not None:
+        out = entry.out_repeated(out)
+    if entry.out_template is not None:
+        out = _merge(entry.out_template, entry.out_dynamic, out)
+    return jax.tree_util.tree_unflatten(entry.out_treedef, out)
+
+
+def _merge(template, dynamic_positions, dynamic_values):
+    leaves = list(template)
     for i, x in zip(dynamic_positions, dynamic_values):
         leaves[i] = x
     return leaves
 
 
+def _getter(positions):
+    """A function of a list giving its items at `positions`, as a tuple (`itemgetter`,
+    which returns a bare item for one position)."""
+    if len(positions) == 1:
+        position = positions[0]
+        return lambda items: (items[position],)
+    return operator.itemgetter(*positions) if positions else (lambda items: ())
+
+
 class _Part(NamedTuple):
-    """What the dispatch reads of one argument's leaves: their kinds, the static ones (typed:
-    equal values of different types, 1, 1.0 and True, stay apart) and the arrays' shapes and
-    dtypes (for a large tree, a number that stands for them)."""
+    """What the dispatch reads of one argument's leaves: their kinds, whether one is a
+    tracer, the static ones with the types of all (typed: equal values of different types,
+    1, 1.0 and True, stay apart) and the arrays' shapes and dtypes (for a large tree, a
+    number that stands for them)."""
 
     kinds: tuple
+    tracer: bool
     static: tuple
     avals: Any
 
 
+# The leaves' types -> (their kinds, whether one is a tracer, the static leaves' types, and
+# getters of the static leaves and of the arrays): read once per pattern of types, so that
+# a call's leaves are sorted by two C-level gathers rather than a walk in Python.
+_PATTERNS: dict = {}
+_SHAPE_AND_DTYPE = operator.attrgetter("shape", "dtype")
+
+
 def _part(leaves) -> _Part:
-    kinds = tuple(_kind(type(x)) for x in leaves)
-    return _Part(kinds, tuple((type(x), x) for x, k in zip(leaves, kinds) if k is _STATIC),
-                 tuple((x.shape, x.dtype) for x, k in zip(leaves, kinds) if k is _ARRAY))
+    types = tuple(map(type, leaves))
+    pattern = _PATTERNS.get(types)
+    if pattern is None:
+        if len(_PATTERNS) >= _REMEMBERED_MAX:
+            _PATTERNS.clear()
+        kinds = tuple(_kind(t) for t in types)
+        static = [i for i, k in enumerate(kinds) if k is _STATIC]
+        pattern = _PATTERNS[types] = (
+            kinds, _TRACER in kinds, tuple(types[i] for i in static), _getter(static),
+            _getter([i for i, k in enumerate(kinds) if k is _ARRAY]))
+    kinds, tracer, static_types, static, arrays = pattern
+    # (the types of the static leaves alone: arrays of NumPy and of JAX share a program)
+    return _Part(kinds, tracer, (static_types, static(leaves)),
+                 tuple(map(_SHAPE_AND_DTYPE, arrays(leaves))))
 
 
 # Arguments seen recently, read once: modules (the user's system, solver, adjoint; immutable)
@@ -215,9 +271,13 @@ def _part(leaves) -> _Part:
 # never changes in place. A tree's entry holds weak references only (a user's large arrays
 # are not kept alive by it) and goes when one of its arrays does, before its id can be reused.
 _MODULES: dict = {}
+_MODULES_BY_VALUE: dict = {}
 _TREES: dict = {}
 _REMEMBERED_MAX = 256
 _TREE_LEAVES_MIN = 16  # smaller trees are read at each call: cheaper than the look-up
+# Arguments of fewer leaves than this, together, are read at each call as one; more, and the
+# large trees among them are looked up.
+_TOGETHER_LEAVES_MAX = 64
 # The shapes and dtypes of a large tree -> a number that stands for them in the cache's
 # key (hashed at no cost, where a tuple of hundreds is hashed again at every call). Never
 # cleared: a number is never reused for other shapes.
@@ -235,42 +295,68 @@ def remembered_arrays(leaves, treedef) -> bool:
 def _flatten(args):
     """(leaves, treedef, parts) of a tuple of arguments. Modules are read once and remembered,
     each with its own `_Part`; so is a tuple holding a module at its top level, element by
-    element. The other arguments (arrays, numbers, options) are read as one `_Part` (one
-    walk instead of one per argument: ~40 µs of an eager `simulate`), unless one of them is
-    a large tree, which is read apart so that a tree of JAX arrays is remembered; their
-    leaves come last. `treedef`: a tuple of (position, leaf count or "tuple", treedef) in
-    the leaves' order."""
+    element. The other arguments (arrays, numbers, options) are flattened together and read
+    as one `_Part` (one walk instead of one per argument: ~40 µs of an eager `simulate`),
+    unless they hold a large tree, which is read apart so that a tree of JAX arrays is
+    remembered; their leaves come last. `treedef`: a tuple of (position, leaf count or
+    "tuple", treedef) in the leaves' order, the other arguments' as (positions, "together",
+    treedef of their tuple) or one entry each."""
     leaves, treedefs, parts = [], [], []
-    plain_leaves, plain, plain_treedefs = [], [], []  # (the other arguments)
+    plain, positions = [], []  # (the other arguments)
     for i, x in enumerate(args):
         if _is_module(type(x)):
             hit = _MODULES.get(id(x))
             if hit is None or hit[0] is not x:
-                hit = (x, *jax.tree_util.tree_flatten(x))
-                if not any(_kind(type(leaf)) is _TRACER for leaf in hit[1]):
-                    if len(_MODULES) >= _REMEMBERED_MAX:
-                        _MODULES.clear()
-                    _MODULES[id(x)] = hit = (*hit, _part(hit[1]))
+                hit = _read_module(x)
             leaves.extend(hit[1])
-            parts.append(hit[3] if len(hit) > 3 else _part(hit[1]))
+            parts.append(hit[3])
             treedefs.append((i, len(hit[1]), hit[2]))
-        elif type(x) is tuple and any(_is_module(type(e)) for e in x):
+        elif type(x) is tuple and any(map(_is_module, map(type, x))):
             sub_leaves, sub_treedef, sub_parts = _flatten(x)
             leaves.extend(sub_leaves)
             parts.extend(sub_parts)
             treedefs.append((i, "tuple", sub_treedef))
         else:
-            sub_leaves, sub_treedef = jax.tree_util.tree_flatten(x)
-            plain_leaves.extend(sub_leaves)
-            plain.append(sub_leaves)
-            plain_treedefs.append((i, len(sub_leaves), sub_treedef))
-    if all(len(sub_leaves) < _TREE_LEAVES_MIN for sub_leaves in plain):
+            plain.append(x)
+            positions.append(i)
+    plain_leaves, plain_treedef = jax.tree_util.tree_flatten(plain)
+    if len(plain_leaves) < _TOGETHER_LEAVES_MAX:
         parts.append(_part(plain_leaves))
+        treedefs.append((tuple(positions), "together", plain_treedef))
     else:
-        parts.extend(_tree_part(sub_leaves, t[2]) for sub_leaves, t in zip(plain,
-                                                                             plain_treedefs))
+        plain_leaves = []
+        for i, x in zip(positions, plain):
+            sub_leaves, sub_treedef = jax.tree_util.tree_flatten(x)
+            parts.append(_tree_part(sub_leaves, sub_treedef))
+            plain_leaves.extend(sub_leaves)
+            treedefs.append((i, len(sub_leaves), sub_treedef))
     leaves.extend(plain_leaves)
-    return leaves, (*treedefs, *plain_treedefs), parts
+    return leaves, tuple(treedefs), parts
+
+
+def _read_module(x):
+    """(x, leaves, treedef, `_Part`) of a module not seen before, remembered by identity; one
+    whose fields are hashable values (a solver made at each call, `diffrax.Tsit5()`) is also
+    remembered by them, typed, so that an equal module reuses the reading."""
+    try:
+        fields = vars(x)
+        by_value = (type(x), tuple(fields.items()), tuple(map(type, fields.values())))
+        hit = _MODULES_BY_VALUE.get(by_value)
+    except TypeError:  # (a field holds an array)
+        by_value = hit = None
+    if hit is None:
+        leaves, treedef = jax.tree_util.tree_flatten(x)
+        hit = (x, leaves, treedef, _part(leaves))
+        if hit[3].tracer:
+            return hit
+        if by_value is not None:
+            if len(_MODULES_BY_VALUE) >= _REMEMBERED_MAX:
+                _MODULES_BY_VALUE.clear()
+            _MODULES_BY_VALUE[by_value] = hit
+    if len(_MODULES) >= _REMEMBERED_MAX:
+        _MODULES.clear()
+    _MODULES[id(x)] = hit = (x, *hit[1:])
+    return hit
 
 
 def _tree_part(leaves, treedef) -> _Part:
@@ -314,11 +400,16 @@ def _is_module(cls):
 
 def _unflatten(treedefs, leaves):
     """The arguments from their leaves and `_flatten`'s treedef."""
-    out, start = [None] * len(treedefs), 0
+    out, start = [None] * _count_arguments(treedefs), 0
     for position, kind, treedef in treedefs:
         if kind == "tuple":
             count = _count(treedef)
             out[position] = tuple(_unflatten(treedef, leaves[start:start + count]))
+        elif kind == "together":
+            count = treedef.num_leaves
+            for i, x in zip(position, jax.tree_util.tree_unflatten(
+                    treedef, leaves[start:start + count])):
+                out[i] = x
         else:
             count = kind
             out[position] = jax.tree_util.tree_unflatten(treedef, leaves[start:start + count])
@@ -326,5 +417,10 @@ def _unflatten(treedefs, leaves):
     return out
 
 
+def _count_arguments(treedefs):
+    return sum(len(position) if kind == "together" else 1 for position, kind, _ in treedefs)
+
+
 def _count(treedefs):
-    return sum(_count(t) if k == "tuple" else k for _, k, t in treedefs)
+    return sum(_count(t) if k == "tuple" else t.num_leaves if k == "together" else k
+               for _, k, t in treedefs)

@@ -436,8 +436,9 @@ def test_written_out_stages_take_diffrax_steps(solver, monkeypatch):
 
 
 def test_a_repeated_call_reuses_the_compiled_solve():
-    """New parameter values, times and tolerances (Python floats) reuse the compiled program:
-    the user's energy is traced once; a new `save` compiles anew."""
+    """New parameter values, times and tolerances (Python floats), a solver made anew at each
+    call and the same shapes as JAX arrays reuse the compiled program: the user's energy is
+    traced once; a new `save` or another solver compiles anew."""
     traced = []
 
     def kinetic(q, qd, p):
@@ -445,15 +446,26 @@ def test_a_repeated_call_reuses_the_compiled_solve():
         return 0.5 * p["m"] * qd @ qd
 
     oscillator = jaxdyn.Lagrangian(kinetic, lambda q, p: 0.5 * p["k"] * q @ q)
-    first = jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 4.0}, t1=1.0)
+    first = jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 4.0}, t1=1.0,
+                            solver=diffrax.Tsit5())
     count = len(traced)
     second = jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0},
-                             t1=0.5, rtol=1e-9, atol=1e-9)
+                             t1=0.5, rtol=1e-9, atol=1e-9, solver=diffrax.Tsit5())
+    third = jaxdyn.simulate(oscillator, jnp.ones(1), jnp.zeros(1), {"m": 1.0, "k": 1.0},
+                            t1=0.5, rtol=1e-9, atol=1e-9, solver=diffrax.Tsit5())
     assert len(traced) == count
     np.testing.assert_allclose(first.q[-1], np.cos(2.0), atol=1e-8)
     np.testing.assert_allclose(second.q[-1], np.cos(1.5), atol=1e-7)
+    np.testing.assert_allclose(third.q[-1], np.cos(0.5), atol=1e-7)
+    # (q̇ of a Lagrangian is u: the same values, whichever output carries them)
+    np.testing.assert_array_equal(third.qd, third.u)
+    np.testing.assert_allclose(third.u[-1], -np.sin(0.5), atol=1e-7)
     jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0}, t1=0.5,
-                    save="q")
+                    save="q", solver=diffrax.Tsit5())
+    assert len(traced) > count
+    count = len(traced)
+    jaxdyn.simulate(oscillator, np.ones(1), np.zeros(1), {"m": 1.0, "k": 9.0}, t1=0.5,
+                    solver=diffrax.Dopri5())
     assert len(traced) > count
 
 

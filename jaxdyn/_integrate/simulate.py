@@ -147,7 +147,7 @@ def simulate(
     equations fail (`RESULTS.singular_mass_matrix`, `nonfinite_forcing`,
     `nonfinite_equations`).
     """
-    if not isinstance(dynamics, AbstractDynamics):
+    if not _is_dynamics(type(dynamics)):
         raise ValueError(f"dynamics must be a jaxdyn.AbstractDynamics (e.g. "
                          f"jaxdyn.Lagrangian), got {type(dynamics).__name__}.")
     dtype = state_dtype(q0, u0)
@@ -188,14 +188,10 @@ def simulate(
         if isinstance(x, jax.core.Tracer)])
 
     def run(budget, lean):
-        # A lean program holds no host callback (JAX's persistent compilation cache keeps
-        # it): its failures, diffrax's checks of arguments included, send the call on to the
-        # full program.
-        with library_checks_as_nan() if lean else contextlib.nullcontext():
-            # (The modules apart from the plain options, which the dispatch then reads as
-            # one tree: `jaxdyn._compile.filter_jit`.)
-            return _simulate(dynamics, solver, stepsize_controller, adjoint, events, q0, u0,
-                             numbers, (dense, save, budget, throw, reachable, lean, max_events))
+        # (The modules apart from the plain options, which the dispatch then reads as one
+        # tree: `jaxdyn._compile.filter_jit`.)
+        return _simulate(dynamics, solver, stepsize_controller, adjoint, events, q0, u0,
+                         numbers, (dense, save, budget, throw, reachable, lean, max_events))
 
     # (Outside any trace every value is known: the walk over the leaves is skipped.)
     if not jax_core.trace_state_clean() and not all(
@@ -222,6 +218,13 @@ def simulate(
 
 
 @functools.cache
+def _is_dynamics(cls) -> bool:
+    """Whether objects of this type are `AbstractDynamics` (by type: an abstract class's
+    check costs ~1 µs of an eager call)."""
+    return issubclass(cls, AbstractDynamics)
+
+
+@functools.cache
 def _structure_preserving(solver_type) -> bool:
     """Whether a solver of this type is a structure-preserving method (by type: an abstract
     class's check costs ~5 µs of an eager call)."""
@@ -232,9 +235,14 @@ def _succeeded(solution) -> bool:
     """Whether every member of an eager solve succeeded (read on the host, no dispatch)."""
     result = _concrete_value(solution.result._value)
     assert result is not None  # (called with values)
-    if result.ndim == 0:  # (one solve: its code read as a number, ~7 µs less)
-        return result.item() == RESULTS.successful._value
-    return not np.any(np.asarray(result) != RESULTS.successful._value)
+    # (read as a NumPy array: a JAX array's own `item` costs ~5 µs more)
+    result = np.asarray(result)
+    if result.ndim == 0:  # (one solve: its code read as a number)
+        return result.item() == _SUCCESSFUL
+    return not np.any(result != _SUCCESSFUL)
+
+
+_SUCCESSFUL = int(RESULTS.successful._value)
 
 
 def _concrete_value(x):
@@ -248,6 +256,16 @@ def _concrete_value(x):
 @filter_jit
 def _simulate(dynamics, solver, stepsize_controller, adjoint, events, q0, u0, numbers,
               options):
+    # A lean program holds no host callback (JAX's persistent compilation cache keeps it):
+    # its failures, diffrax's checks of arguments included, send the call on to the full
+    # program. (Set while tracing, which is when the checks are written.)
+    with library_checks_as_nan() if options[5] else contextlib.nullcontext():
+        return _simulate_traced(dynamics, solver, stepsize_controller, adjoint, events, q0,
+                                u0, numbers, options)
+
+
+def _simulate_traced(dynamics, solver, stepsize_controller, adjoint, events, q0, u0, numbers,
+                     options):
     p, t0, t1, ts, rtol, atol, dt0 = numbers
     dense, save, max_steps, throw, reachable, lean, max_events = options
     q0, u0, p, t0, t1 = _checked_start(dynamics, q0, u0, p, t0, t1, solver)
