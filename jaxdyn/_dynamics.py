@@ -124,6 +124,16 @@ class AbstractDynamics(eqx.Module):
         mass_matrix, forcing = self.form_equations(t, q, u, p)
         return mass_matrix @ ud - forcing
 
+    def form_residual_held(self, t, q, u, ud, p, held, forces
+                           ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None:
+        """(M u̇ − f − Cᵀ λ, r_P, v_P, a_P): the residual of Lagrange's equations of the first
+        kind with the points of `held` (a `jaxdyn.HeldPoints`) pushed by `forces` λ (k, 3)
+        in world axes, and the points' positions, velocities and classical accelerations
+        (k, 3) each in world axes, from one pass over the formulation's recursions; None
+        where the formulation has no such pass (the articulated-body formulation has it:
+        `jaxdyn._form.newton_euler.newton_euler_held`)."""
+        return None
+
     def state_projection(self) -> Callable | None:
         """None, or a function (t, q, u, p) → (q, u) that `simulate` applies after every step
         (drift control of constrained systems, `jaxdyn.Projection`)."""

@@ -349,6 +349,37 @@ def test_held_points_against_pinocchio(hopper):
                          total * (data.acom[0] - model.gravity.linear), rtol=1e-10)
 
 
+def test_first_kind_residuals_with_held_points_against_pinocchio(hopper):
+    """The residuals of Lagrange's equations of the first kind at arbitrary accelerations
+    and multipliers, M u̇ − f − Cᵀ λ and C u̇ − c with Baumgarte's terms, which the
+    trajectory optimiser differentiates: formed in one pass of the recursive Newton–Euler
+    algorithm with the holds' forces as loads (a point on the foot, welded to the shank by a
+    fixed joint, and one on the slider), against Pinocchio's `rnea` less Jᵀ λ and its frame
+    Jacobians and classical accelerations, at random states."""
+    tree, p = hopper.tree, hopper.p
+    frames, points = ["foot", "slider"], np.array([[0.01, 0.0, -0.03], [0.0, 0.02, 0.0]])
+    holds = np.array([[0.1, -0.2, -0.5], [-0.1, 0.0, 0.05]])
+    constrained = jaxdyn.Constrained(
+        jaxdyn.ArticulatedBody(tree), holonomic=jaxdyn.HeldPoints(tree, frames, holds, points),
+        stabilisation=jaxdyn.Baumgarte(3.0, 5.0))
+    (q_pin, v_pin, a_pin), (q, u, ud) = hopper.random_states(3, seed=12)
+    forces = np.random.default_rng(13).normal(size=(3, 6)) * 20.0
+    first, second = jax.jit(jax.vmap(lambda q, u, ud, forces: constrained.first_kind_residuals(
+        0.0, q, u, ud, forces, p)))(q, u, ud, forces)
+    for k in range(3):
+        terms = [_held_point_terms(hopper, q_pin[k], v_pin[k], f, x)
+                 for f, x in zip(frames, points)]
+        jacobian = np.concatenate([t[1] for t in terms])
+        expected = (pin.rnea(hopper.model, hopper.data, q_pin[k], v_pin[k], a_pin[k])
+                    - jacobian.T @ forces[k])
+        assert_close(np.asarray(first[k]) @ hopper.permutation.T, expected, rtol=0,
+                     atol=1e-11 * (1 + np.max(np.abs(expected))))
+        position = np.concatenate([t[0] for t in terms]) - holds.ravel()
+        expected = (jacobian @ a_pin[k] + np.concatenate([t[2] for t in terms])
+                    + 2 * 3.0 * jacobian @ v_pin[k] + 5.0**2 * position)
+        assert_close(second[k], expected, rtol=0, atol=1e-11 * (1 + np.max(np.abs(expected))))
+
+
 def test_a_held_robots_step_differentiates_as_finite_differences(hopper):
     """The derivative of a shooting problem's step of the hopper with its foot held
     (`HeldPoints`, Baumgarte's terms), formed from the residuals of Lagrange's equations of

@@ -281,6 +281,30 @@ class Constrained(AbstractDynamics):
                             + beta**2 * self.holonomic(q, p))
         return acceleration
 
+    def first_kind_residuals(self, t, q, u, ud, multipliers, p=None):
+        """(M u̇ − f − Cᵀ λ, C u̇ − c) at one state: the residuals of Lagrange's equations of
+        the first kind at accelerations u̇ and multipliers λ, zero at their solution. For
+        `HeldPoints` alone on a formulation that forms both in one pass of its recursions
+        (`form_residual_held`: the articulated-body formulation's recursive Newton–Euler
+        algorithm, the points' forces λ taken as loads), that pass; else the formulation's
+        residual less Cᵀ λ, the transpose of u̇ ↦ C u̇ − c applied to λ."""
+        if isinstance(self.holonomic, HeldPoints) and self.pfaffian is None:
+            held = self.holonomic
+            fused = self.dynamics.form_residual_held(t, q, u, ud, p, held,
+                                                     multipliers.reshape(-1, 3))
+            if fused is not None:
+                residual, positions, velocities, accelerations = fused
+                second = accelerations.reshape(-1)
+                if isinstance(self.stabilisation, Baumgarte):
+                    alpha = jnp.asarray(self.stabilisation.alpha, q.dtype)
+                    beta = jnp.asarray(self.stabilisation.beta, q.dtype)
+                    second = (second + 2 * alpha * velocities.reshape(-1)
+                              + beta**2 * (positions - held.positions).reshape(-1))
+                return residual, second
+        # (C u̇ − c is affine in u̇ with the coefficient C: Cᵀ λ is its VJP in u̇)
+        second, transpose = jax.vjp(lambda ud: self.acceleration_residual(t, q, u, ud, p), ud)
+        return self.dynamics.form_residual(t, q, u, ud, p) - transpose(multipliers)[0], second
+
     def constraint_rows(self, t, q, u, p=None):
         """(C, c) of C u̇ = c at one state, with the stabilisation's terms."""
         jacobian, g, curvature, phi = self.constraint_terms(t, q, u, p)

@@ -272,6 +272,14 @@ class Controlled(AbstractDynamics):
         return (self.dynamics.form_residual(t, q, u, ud, p)
                 - self.applied(jnp.asarray(t, q.dtype), q, u, p))
 
+    def form_residual_held(self, t, q, u, ud, p, held, forces):
+        """The wrapped formulation's, less B r."""
+        inner = self.dynamics.form_residual_held(t, q, u, ud, p, held, forces)
+        if inner is None:
+            return None
+        residual, *motion = inner
+        return residual - self.applied(jnp.asarray(t, q.dtype), q, u, p), *motion
+
     def form_accelerations(self, t, q, u, p=None, *, small):
         if isinstance(self.dynamics, ArticulatedBody):  # B r joins the joint forces
             t = jnp.asarray(t, q.dtype)

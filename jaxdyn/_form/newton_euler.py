@@ -101,14 +101,22 @@ def newton_euler(tree: RigidBodyTree, t, q, u, ud, p):
     """τ = M u̇ + c(q, u) − g(q) − Jᵀ f^ext by the recursive Newton–Euler algorithm: the
     forces along the speeds that produce the accelerations u̇ at (q, u). Joint forces, springs
     and dampers are not included (they are what the joints supply)."""
+    motion, poses = link_motion(tree, q, u, ud, tree.gravity_vector(p, q.dtype))
+    return _joint_forces_needed(tree, t, q, u, p, motion, poses)
+
+
+def _joint_forces_needed(tree, t, q, u, p, motion, poses, external=None):
+    """The inward pass of `newton_euler` from the links' motion and poses in their parents;
+    `external`: further forces on the links (moments, forces (N, 3) about their origins, in
+    their axes), taken as loads."""
     dtype = q.dtype
-    (omega, velocity, alpha, accel), (rotation, origin) = link_motion(
-        tree, q, u, ud, tree.gravity_vector(p, dtype))
-    moment, force = _link_forces(inertial_parameters(tree, p, dtype), omega, velocity, alpha,
-                                 accel)
+    rotation, origin = poses
+    moment, force = _link_forces(inertial_parameters(tree, p, dtype), *motion)
     if tree.loads:
         external_moment, external_force = tree.load_wrenches(t, q, u, p)
         moment, force = moment - external_moment, force - external_force
+    if external is not None:
+        moment, force = moment - external[0], force - external[1]
 
     def inwards(accumulated, link):
         rotation_pc, origin_pc, own_moment, own_force = link
@@ -120,6 +128,45 @@ def newton_euler(tree: RigidBodyTree, t, q, u, ud, p):
     # τ_i = S_iᵀ f_i for every joint at once: the transpose of u ↦ S u.
     _, transpose = jax.vjp(tree.joint_twists, u)
     return transpose(transmitted)[0]
+
+
+def newton_euler_held(tree: RigidBodyTree, t, q, u, ud, p, links, points, forces):
+    r"""Inverse dynamics with forces on held points, and the points' motion, in one pass:
+
+        τ = M u̇ + c(q, u) − g(q) − Σ_P J_Pᵀ λ_P,
+
+    with λ_P (world axes) acting at point P of link `links[k]` (`points[k]` in its axes) and
+    J_P its velocity Jacobian in world axes, and each point's position r_P, velocity v_P and
+    classical acceleration a_P = J_P u̇ + J̇_P u in world axes. The outward pass of the
+    recursive Newton–Euler algorithm gives every link's spatial velocity (ω, v) and
+    acceleration (ω̇, a) in its axes, from which
+
+        v_P = v + ω × P,    a_P = a + ω̇ × P + ω × v_P
+
+    (Featherstone, 2008, §5.3; a measured from the world's −g, which R a_P + g restores), and
+    the inward pass takes the forces Rᵀ λ_P, with moments P × Rᵀ λ_P about the links'
+    origins, as external forces: Lagrange's equations of the first kind with held points,
+    M u̇ − f − Cᵀ λ and C u̇ + γ, from one pass of the recursions instead of the tree's and
+    each point's chain apart.
+
+    **Returns:** (τ (m,), r_P (k, 3), v_P (k, 3), a_P (k, 3)).
+    """
+    dtype = q.dtype
+    gravity = tree.gravity_vector(p, dtype)
+    motion, poses = link_motion(tree, q, u, ud, gravity)
+    rotations, origins = tree.link_poses(t, q, p, alone=False)
+    omega, velocity, alpha, accel = (x[links] for x in motion)
+    rotation = rotations[links]
+    points = points.astype(dtype)
+    velocity = velocity + spatial.cross(omega, points)
+    accel = accel + spatial.cross(alpha, points) + spatial.cross(omega, velocity)
+    force = spatial.tmatvec(rotation, forces)  # λ in each link's axes
+    zero = jnp.zeros((len(tree.links), 3), dtype)
+    external = (zero.at[links].add(spatial.cross(points, force)), zero.at[links].add(force))
+    tau = _joint_forces_needed(tree, t, q, u, p, motion, poses, external)
+    positions = origins[links] + spatial.matvec(rotation, points)
+    return (tau, positions, spatial.matvec(rotation, velocity),
+            spatial.matvec(rotation, accel) + gravity[None])
 
 
 def joint_forces(tree: RigidBodyTree, t, q, u, p):

@@ -510,11 +510,7 @@ def _first_kind_accelerations_jvp(rest, primals, tangents):
 
     def residuals(arrays, t, q, u, r, p):
         driven = eqx.combine(arrays, rest).with_inputs(r)
-        # R₂ is affine in u̇ with the coefficient C: Cᵀλ is its VJP in u̇.
-        second, transpose = jax.vjp(lambda ud: driven.acceleration_residual(t, q, u, ud, p),
-                                    ud)
-        return (driven.dynamics.form_residual(t, q, u, ud, p) - transpose(multipliers)[0],
-                second)
+        return driven.first_kind_residuals(t, q, u, ud, multipliers, p)
 
     like = (ud, jnp.zeros(kkt.jacobian.shape[0], ud.dtype))
     _, (d_first, d_second) = jvp_of_perturbed(residuals, primals, tangents, like=like)
