@@ -119,7 +119,7 @@ def frame_jacobian(tree: RigidBodyTree, frame, q, p=None, *, point=None, axes="w
 
 
 def _accelerations(chain, q, u, ud):
-    """(R_WC, ω, v, ω̇, v̇) of the last link of `chain` (see `_ancestors`): its orientation,
+    """(R_WC, ω, v, ω̇, v̇) (N, …) of every link of a tree (a chain, `_ancestors`): its orientation,
     angular velocity and origin's velocity, and the rates of their components in its own
     (moving) axes, by the outward recursion of Featherstone (Rigid Body Dynamics Algorithms,
     2008, §5.3) in each link's axes. With the joint's pose (R_PC, r_PC) in its parent and its
@@ -149,17 +149,18 @@ def _accelerations(chain, q, u, ud):
 
     zero = jnp.zeros(3, q.dtype)
     root = (jnp.eye(3, dtype=q.dtype), zero, zero, zero, zero)
-    states = chain.forward(step, root, (rotation, translation, omega_j, velocity_j, alpha_j,
-                                        accel_j))
-    return tuple(x[-1] for x in states)
+    return chain.forward(step, root, (rotation, translation, omega_j, velocity_j, alpha_j,
+                                      accel_j))
 
 
-def _point_accelerations(chain, point, q, u, ud):
-    """(R_WC, v_P, ω̇, a_P): the last link's orientation, the velocity of `point` (in the
-    link's axes), the link's angular acceleration and the point's classical acceleration, all
-    in the link's axes: v_P = v + ω × P, a_P = v̇ + ω̇ × P + ω × v_P (the rate of v_P's
-    components in the moving axes, plus the axes' own turning)."""
-    rotation, omega, velocity, alpha, accel = _accelerations(chain, q, u, ud)
+def _point_accelerations(chain, point, q, u, ud, links=-1):
+    """(R_WC, v_P, ω̇, a_P): the orientation of the chain's last link (or of the tree's
+    `links`, with a point (k, 3) on each), the velocity of `point` (in the link's axes), the
+    link's angular acceleration and the point's classical acceleration, all in the link's
+    axes: v_P = v + ω × P, a_P = v̇ + ω̇ × P + ω × v_P (the rate of v_P's components in the
+    moving axes, plus the axes' own turning)."""
+    rotation, omega, velocity, alpha, accel = (x[links] for x in
+                                               _accelerations(chain, q, u, ud))
     velocity = velocity + spatial.cross(omega, point)
     accel = accel + spatial.cross(alpha, point) + spatial.cross(omega, velocity)
     return rotation, velocity, alpha, accel
@@ -347,10 +348,32 @@ class HeldPoints(eqx.Module):
                 "Constrained the formulation of this tree (ArticulatedBody(tree), Kane(tree), "
                 "…, possibly Controlled).")
 
+    def on_bodies(self):
+        """(the links of `tree.merge_fixed()` that carry the points (k,), the points in their
+        axes (k, 3)), or None where a point is welded to the world."""
+        bodies = self.tree.merge_fixed()
+        index = {link.name: i for i, link in enumerate(bodies.links)}
+        welded = self.tree.welded_bodies()
+        links, points = [], []
+        for frame, point in zip(self.frames, self.points):
+            body, rotation, translation = welded[self.tree.links[frame].name]
+            if body is None:  # nothing moves it: the chains' route below
+                return None
+            links.append(index[body])
+            points.append(jnp.asarray(rotation, point.dtype) @ point
+                          + jnp.asarray(translation, point.dtype))
+        return np.asarray(links), jnp.stack(points)
+
     def __call__(self, q, p=None):
         """φ(q) (3k,): each point's position less where it is held."""
         self._checked(q)
         t = jnp.zeros((), q.dtype)
+        on_bodies = self.on_bodies()
+        if on_bodies is not None:  # one pass over the welded tree's links
+            links, points = on_bodies
+            rotations, origins = self.tree.merge_fixed().link_poses(t, q, p)
+            return (origins[links] + spatial.matvec(rotations[links], points.astype(q.dtype))
+                    - self.positions).reshape(-1)
         rows = []
         for frame, point, position in zip(self.frames, self.points, self.positions):
             chain, q_index, _ = _ancestors(self.tree, frame)
@@ -362,6 +385,13 @@ class HeldPoints(eqx.Module):
         """(φ̇ = C u, φ̈ = C u̇ + γ) (3k,): each point's velocity and classical acceleration
         in world axes, by the outward recursion of link accelerations (`frame_acceleration`)."""
         self._checked(q, u)
+        on_bodies = self.on_bodies()
+        if on_bodies is not None:  # one pass over the welded tree's links, not one per chain
+            links, points = on_bodies
+            rotation, velocity, _, accel = _point_accelerations(
+                self.tree.merge_fixed(), points.astype(q.dtype), q, u, ud, links)
+            return (spatial.matvec(rotation, velocity).reshape(-1),
+                    spatial.matvec(rotation, accel).reshape(-1))
         velocities, accelerations = [], []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
@@ -377,6 +407,21 @@ class HeldPoints(eqx.Module):
         classical accelerations at u̇ = 0), so that φ̈ = C u̇ + γ."""
         self._checked(q, u)
         t = jnp.zeros((), q.dtype)
+        curvature = self.velocities_and_accelerations(q, u, jnp.zeros_like(u), p)[1]
+        on_bodies = self.on_bodies()
+        if on_bodies is not None:  # the welded tree's poses once for every point
+            links, points = on_bodies
+            bodies = self.tree.merge_fixed()
+            rotations, origins = bodies.link_poses(t, q, p)
+            where = origins[links] + spatial.matvec(rotations[links], points.astype(q.dtype))
+            moved = np.zeros((len(links), self.tree.num_speeds), bool)
+            for k, link in enumerate(links):
+                moved[k, ancestry(bodies, int(link))[2]] = True
+            jacobians = []
+            for k in range(len(links)):
+                _, velocity = world_subspaces(bodies, rotations, origins, where[k])
+                jacobians.append(jnp.where(moved[k][None], velocity.T, 0.0))
+            return jnp.concatenate(jacobians), curvature
         jacobians = []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
@@ -385,5 +430,4 @@ class HeldPoints(eqx.Module):
             _, velocity = world_subspaces(chain, rotations, origins, where)
             jacobians.append(jnp.zeros((3, self.tree.num_speeds), q.dtype)
                              .at[:, u_index].set(velocity.T))
-        curvature = self.velocities_and_accelerations(q, u, jnp.zeros_like(u), p)[1]
         return jnp.concatenate(jacobians), curvature
