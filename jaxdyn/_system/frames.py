@@ -153,7 +153,7 @@ def _accelerations(chain, q, u, ud):
                                       accel_j))
 
 
-def _point_accelerations(chain, point, q, u, ud, links=-1):
+def _point_accelerations(chain, point, q, u, ud, links: int | np.ndarray = -1):
     """(R_WC, v_P, ω̇, a_P): the orientation of the chain's last link (or of the tree's
     `links`, with a point (k, 3) on each), the velocity of `point` (in the link's axes), the
     link's angular acceleration and the point's classical acceleration, all in the link's
