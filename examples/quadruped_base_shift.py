@@ -25,7 +25,7 @@ The same problem is solved by Crocoddyl in tests/test_crocoddyl.py (the same opt
 against it in benchmarks/bench_optimal_control.py.
 
 Run:  python -m pip install -e ".[robots]" && python examples/quadruped_base_shift.py
-      (about 2 minutes: the first solve compiles for 1.5 minutes on a 2-core CPU)
+      (about a minute: the first solve compiles for half a minute on a 2-core CPU)
 """
 
 import time
