@@ -157,33 +157,16 @@ class ArticulatedBody(AbstractDynamics):
     def form_residual_held(self, t, q, u, ud, p, held, forces):
         """`AbstractDynamics.form_residual_held` by the recursive Newton–Euler algorithm with
         the points' forces as loads (`jaxdyn._form.newton_euler.newton_euler_held`)."""
-        on_bodies = _held_on_bodies(self.tree, held)
+        if [link.name for link in held.tree.links] != [link.name for link in self.tree.links]:
+            return None  # (points of another tree)
+        on_bodies = held.on_bodies()
         if on_bodies is None:
             return None
         t, q, u = self._check(t, q, u)
         bodies = self.tree.merge_fixed()
-        tau, *motion = newton_euler_held(bodies, t, q, u, ud, p, *on_bodies, forces)
+        links, points = on_bodies
+        tau, *motion = newton_euler_held(bodies, t, q, u, ud, p, links, points, forces)
         return tau - newton_euler_joint_forces(bodies, t, q, u, p), *motion
-
-
-def _held_on_bodies(tree, held):
-    """(the merged tree's links, the points in their axes) of `held`'s points, or None where
-    `held` holds points of another tree."""
-    if [link.name for link in held.tree.links] != [link.name for link in tree.links]:
-        return None
-    bodies = tree.merge_fixed()
-    index = {link.name: i for i, link in enumerate(bodies.links)}
-    welded = tree.welded_bodies()
-    links, offsets = [], []
-    for frame in held.frames:
-        body, rotation, translation = welded[tree.links[frame].name]
-        if body is None:  # a point welded to the world: nothing moves it
-            return None
-        links.append(index[body])
-        offsets.append((rotation, translation))
-    points = jnp.stack([rotation @ point + translation for (rotation, translation), point
-                        in zip(offsets, held.points)])
-    return np.asarray(links), points
 
 
 def _kinematics_in_link_axes(tree, q, u, p, subspaces, dtype):
