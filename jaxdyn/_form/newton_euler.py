@@ -26,6 +26,7 @@ import numpy as np
 
 from .._state import public_function
 from .._system import spatial
+from .._system.frames import point_motion
 from .._system.subspaces import ancestry, world_subspaces
 from .._system.tree import RigidBodyTree, checked_state as _checked
 
@@ -155,11 +156,9 @@ def newton_euler_held(tree: RigidBodyTree, t, q, u, ud, p, links, points, forces
     gravity = tree.gravity_vector(p, dtype)
     motion, poses = link_motion(tree, q, u, ud, gravity)
     rotations, origins = tree.link_poses(t, q, p, alone=False)
-    omega, velocity, alpha, accel = (x[links] for x in motion)
     rotation = rotations[links]
     points = points.astype(dtype)
-    velocity = velocity + spatial.cross(omega, points)
-    accel = accel + spatial.cross(alpha, points) + spatial.cross(omega, velocity)
+    velocity, _, accel = point_motion(points, *(x[links] for x in motion))
     force = spatial.tmatvec(rotation, forces)  # λ in each link's axes
     zero = jnp.zeros((len(tree.links), 3), dtype)
     external = (zero.at[links].add(spatial.cross(points, force)), zero.at[links].add(force))

@@ -161,9 +161,15 @@ def _point_accelerations(chain, point, q, u, ud, links: int | np.ndarray = -1):
     moving axes, plus the axes' own turning)."""
     rotation, omega, velocity, alpha, accel = (x[links] for x in
                                                _accelerations(chain, q, u, ud))
+    return rotation, *point_motion(point, omega, velocity, alpha, accel)
+
+
+def point_motion(point, omega, velocity, alpha, accel):
+    """(v_P, ω̇, a_P) of a point P fixed in a link, from the link's spatial motion (ω, v, ω̇,
+    v̇) about its origin, all in the link's axes: v_P = v + ω × P, a_P = v̇ + ω̇ × P + ω × v_P
+    (the rate of v_P's components in the moving axes, plus the axes' own turning)."""
     velocity = velocity + spatial.cross(omega, point)
-    accel = accel + spatial.cross(alpha, point) + spatial.cross(omega, velocity)
-    return rotation, velocity, alpha, accel
+    return velocity, alpha, accel + spatial.cross(alpha, point) + spatial.cross(omega, velocity)
 
 
 @public_function(num_static=2)
@@ -417,11 +423,12 @@ class HeldPoints(eqx.Module):
             moved = np.zeros((len(links), self.tree.num_speeds), bool)
             for k, link in enumerate(links):
                 moved[k, ancestry(bodies, int(link))[2]] = True
-            jacobians = []
-            for k in range(len(links)):
-                _, velocity = world_subspaces(bodies, rotations, origins, where[k])
-                jacobians.append(jnp.where(moved[k][None], velocity.T, 0.0))
-            return jnp.concatenate(jacobians), curvature
+            # Every speed's subspace at the world's origin, once; at each point P its linear
+            # part is v_k + ω_k × P, for the speeds that move P's body.
+            omega, velocity = world_subspaces(bodies, rotations, origins)
+            columns = velocity[None] + spatial.cross(omega[None], where[:, None])
+            jacobians = jnp.where(moved[:, :, None], columns, 0.0)  # (k, m, 3)
+            return jnp.swapaxes(jacobians, 1, 2).reshape(-1, self.tree.num_speeds), curvature
         jacobians = []
         for frame, point in zip(self.frames, self.points):
             chain, q_index, u_index = _ancestors(self.tree, frame)
