@@ -39,6 +39,13 @@ stop by their own default tests: jaxdyn when the full step's predicted decrease 
 both are printed. Crocoddyl runs with `nthreads = 1` (its OpenMP threads over the nodes, set
 to the cores, are printed beside it; on a loaded 2-core machine they slow it down).
 
+Each problem runs in a process of its own (with `--record`, one after another): a process that
+has just freed a large batch's buffers runs later programs slower (ANYmal-C's solve after
+the double pendulum's batch of 1024: 2.47× Crocoddyl's time against 1.65×, while with glibc's
+malloc kept from returning memory to the system, `MALLOC_TRIM_THRESHOLD_` and
+`MALLOC_MMAP_THRESHOLD_` at 1 GB, 1.61×), which would time the allocator's state, not the
+solver.
+
 Measured: one solve to convergence (jaxdyn compiled, median over interleaved rounds), time per
 iteration (solve / iterations), jaxdyn's first call in this process (trace, compile, one run);
 jaxdyn's model-predictive control, time a control step (ten warm-started iterations and the
@@ -53,8 +60,11 @@ one in Python, whose callbacks per node would time Python, not Crocoddyl).
 """
 
 import importlib.metadata
+import json
+import math
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -82,6 +92,9 @@ ROUNDS = 5
 # Each batch is timed in up to ROUNDS rounds of both solvers, as many as fit in this many
 # seconds (at least one).
 BATCH_SECONDS = 60
+# A single solve: SINGLE_ROUNDS rounds of both solvers, each of as many calls as take at least
+# ROUND_SECONDS.
+SINGLE_ROUNDS, ROUND_SECONDS = 9, 0.1
 # jaxdyn per problem in a batch at or below Crocoddyl's sequential solves; one problem within
 # 2× of Crocoddyl.
 TARGET_BATCH, TARGET_SINGLE = 1.0, 2.0
@@ -182,8 +195,14 @@ def single(case, recorder):
     theirs = CrocoddylSolves(case)
     (their_cost, their_iterations), = theirs(q0s, guesses)
     threaded = CrocoddylSolves(case, threads=os.cpu_count() or 1)
+    # Rounds of at least ROUND_SECONDS (a solve takes 1–100 ms): a round of a single call of
+    # a short solve times the machine's hiccups as much as the solve.
+    start = time.perf_counter()
+    theirs(q0s, guesses)
+    number = max(1, math.ceil(ROUND_SECONDS / (time.perf_counter() - start)))
     times = interleaved({"jaxdyn": (ours, (q0, guess)), "crocoddyl": (theirs, (q0s, guesses)),
-                         "threaded": (threaded, (q0s, guesses))}, number=1, rounds=ROUNDS)
+                         "threaded": (threaded, (q0s, guesses))}, number=number,
+                        rounds=SINGLE_ROUNDS)
     ours_t, theirs_t = times["jaxdyn"], times["crocoddyl"]
     per_ours, per_theirs = ours_t / iterations, theirs_t / their_iterations
     print(f"\n{name}: one solve from the nominal start")
@@ -278,23 +297,32 @@ def main():
         sys.exit(mismatch)
     quick = "--quick" in sys.argv
     recorder = Recorder("optimal_control")
-    print(f"jax {jax.__version__}, crocoddyl {importlib.metadata.version('crocoddyl')}, pin "
-          f"{importlib.metadata.version('pin')}, {os.cpu_count()} cores")
-    makes = (double_pendulum, panda, anymal)
-    if "--only" in sys.argv:  # one problem (not with --record, which writes every row)
-        wanted = sys.argv[sys.argv.index("--only") + 1]
-        makes = tuple(make for make in makes if make.__name__ == wanted)
-        if not makes or "--record" in sys.argv:
-            sys.exit("--only takes double_pendulum, panda or anymal, without --record")
-    for make in makes:
-        case = make()
-        single(case, recorder)
-        if case["name"] == "double pendulum":  # the Panda's MPC: examples/optimal_control.py
-            mpc(case, recorder)
-        for size in case["batches"][:1] if quick else case["batches"]:
-            batch(case, size, recorder)
-    if "--record" in sys.argv:
-        recorder.write()
+    makes = {make.__name__: make for make in (double_pendulum, panda, anymal)}
+    if "--only" not in sys.argv:  # each problem in a process of its own (the module docstring)
+        print(f"jax {jax.__version__}, crocoddyl {importlib.metadata.version('crocoddyl')}, "
+              f"pin {importlib.metadata.version('pin')}, {os.cpu_count()} cores")
+        for name in makes:
+            with tempfile.TemporaryDirectory() as directory:
+                rows = os.path.join(directory, "rows.json")
+                subprocess.run([sys.executable, __file__, "--only", name, "--rows", rows,
+                                *(["--quick"] if quick else [])], check=True)
+                with open(rows) as file:
+                    recorder.rows.extend(json.load(file))
+        if "--record" in sys.argv:
+            recorder.write()
+        return
+    wanted = sys.argv[sys.argv.index("--only") + 1]
+    if wanted not in makes or "--record" in sys.argv:
+        sys.exit("--only takes double_pendulum, panda or anymal, without --record")
+    case = makes[wanted]()
+    single(case, recorder)
+    if case["name"] == "double pendulum":  # the Panda's MPC: examples/optimal_control.py
+        mpc(case, recorder)
+    for size in case["batches"][:1] if quick else case["batches"]:
+        batch(case, size, recorder)
+    if "--rows" in sys.argv:  # (a process of `--record`'s)
+        with open(sys.argv[sys.argv.index("--rows") + 1], "w") as file:
+            json.dump(recorder.rows, file)
 
 
 if __name__ == "__main__":

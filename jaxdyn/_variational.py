@@ -17,6 +17,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 
@@ -288,8 +289,14 @@ def speeds_of_momentum(dynamics, t, q, guess, p, momentum, newton, max_steps):
     solved = jnp.max(jnp.abs(left)) <= scale
 
     def iterate():
+        # The root's derivative solved in the least-squares sense: a branch not taken is
+        # differentiated too wherever `cond` runs as a select (under vmap), and the
+        # linearisation (`jax.linearize`, reverse mode) gives it zeros for its values, so that
+        # its Jacobian is zero there; solved by LU, that is NaN, which lineax raises as an
+        # error although the select discards it.
         sol = optx.root_find(lambda x, _: residual(x), newton, speeds, max_steps=max_steps,
-                             throw=False)
+                             throw=False, adjoint=optx.ImplicitAdjoint(
+                                 linear_solver=lx.AutoLinearSolver(well_posed=False)))
         return sol.value, sol.result == optx.RESULTS.successful
 
     return jax.lax.cond(solved, lambda: (speeds, jnp.array(True)), iterate)

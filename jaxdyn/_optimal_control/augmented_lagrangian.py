@@ -82,12 +82,12 @@ class Augmented(ShootingProblem):
         k = jnp.round((t - self.t0) / self.dt)
         return jnp.clip(k, 0, self.num_nodes - 1).astype(jnp.int32)
 
-    def running_value(self, t, x, r, p, num_q):
-        value = super().running_value(t, x, r, p, num_q)
+    def running_value(self, t, q, u, r, p):
+        value = super().running_value(t, q, u, r, p)
         if self.path_constraints is None:
             return value
         k = self._node(t)
-        c = self.path_value(t, x, r, p, num_q)
+        c = self.path_value(t, q, u, r, p)
         if self.attained is None:
             shifted = jnp.maximum(c + self.multipliers[k] / self.penalty, 0.0)
         else:
@@ -95,11 +95,11 @@ class Augmented(ShootingProblem):
                                 + self.multipliers[k] / self.penalty, 0.0)
         return _with_penalty(value, self.penalty / self.dt, shifted)
 
-    def final_value(self, t, x, p, num_q):
-        value = super().final_value(t, x, p, num_q)
+    def final_value(self, t, q, u, p):
+        value = super().final_value(t, q, u, p)
         if self.terminal_constraints is None:
             return value
-        h = self.terminal_value(t, x, p, num_q)
+        h = self.terminal_value(t, q, u, p)
         if self.attained is not None:
             h = h - self.attained[1]
         return _with_penalty(value, self.penalty, h + self.terminal_multipliers / self.penalty)
@@ -151,9 +151,9 @@ def derivative_problem(problem: ShootingProblem, multipliers: Multipliers, xs, r
 def constraint_values(problem: ShootingProblem, xs, rs, p, num_q):
     """(c (N, c), h (e,)) along a trajectory."""
     ts = problem.times(xs.dtype)
-    path = jax.vmap(problem.path_value, in_axes=(0, 0, 0, None, None))(ts[:-1], xs[:-1], rs, p,
-                                                                         num_q)
-    return path, problem.terminal_value(ts[-1], xs[-1], p, num_q)
+    path = jax.vmap(problem.path_value, in_axes=(0, 0, 0, 0, None))(
+        ts[:-1], xs[:-1, :num_q], xs[:-1, num_q:], rs, p)
+    return path, problem.terminal_value(ts[-1], xs[-1, :num_q], xs[-1, num_q:], p)
 
 
 def iterate_with_constraints(problem: ShootingProblem, solver, x_init, p, xs, rs, num_q, *,

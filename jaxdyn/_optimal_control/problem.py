@@ -306,9 +306,14 @@ class ShootingProblem(eqx.Module):
 
     def step(self, t, x, r, p, num_q):
         """x_{k+1} = F_Δt(t_k, x_k, r_k): one step of the discretisation, r held."""
-        return _step(self, t, x, r, p, num_q)
+        return jnp.concatenate(_split_step(self, t, x[:num_q], x[num_q:], r, p))
 
-    def _step(self, t, x, r, p, num_q):
+    def split_step(self, t, q, u, r, p):
+        """(q_{k+1}, u_{k+1}) = F_Δt(t_k, (q_k, u_k), r_k): `step` with the coordinates and
+        speeds apart, whose Jacobians in each are formed without perturbing the other."""
+        return _split_step(self, t, q, u, r, p)
+
+    def _split_step(self, t, q, u, r, p):
         driven = self.dynamics.with_inputs(r)
         implicit = (_accelerations if _residual_is_equations(self.dynamics) else
                     first_kind_accelerations if _first_kind_residuals(self.dynamics) else None)
@@ -323,9 +328,8 @@ class ShootingProblem(eqx.Module):
         def rates(t, q, u):
             return driven.coordinate_rates(t, q, u, p)
 
-        q, u = self.discretisation.step(field, rates, t, x[:num_q], x[num_q:],
-                                        jnp.asarray(self.dt, x.dtype), system=(driven, p))
-        return jnp.concatenate([q, u])
+        return self.discretisation.step(field, rates, t, q, u, jnp.asarray(self.dt, q.dtype),
+                                        system=(driven, p))
 
     def bounds(self, num_inputs, dtype):
         """(r_lo, r_hi) as arrays of shape (k,) (±inf where unbounded), (None, None) for a
@@ -338,17 +342,17 @@ class ShootingProblem(eqx.Module):
 
     # -- the costs ------------------------------------------------------------------------------
 
-    def running_value(self, t, x, r, p, num_q):
+    def running_value(self, t, q, u, r, p):
         """ℓ as the user's function returns it: a scalar, or a residual vector ρ."""
         return _cost_value(call(self.running_cost, "running cost ℓ", self.time_dependent,
-                                _RUNNING_ARGS, t, x[:num_q], x[num_q:], r, p), "running cost ℓ")
+                                _RUNNING_ARGS, t, q, u, r, p), "running cost ℓ")
 
-    def final_value(self, t, x, p, num_q):
+    def final_value(self, t, q, u, p):
         """Φ as the user's function returns it: a scalar, or a residual vector ρ."""
         if self.terminal_cost is None:
-            return jnp.zeros((), x.dtype)
+            return jnp.zeros((), q.dtype)
         return _cost_value(call(self.terminal_cost, "terminal cost Φ", self.time_dependent,
-                                _TERMINAL_ARGS, t, x[:num_q], x[num_q:], p), "terminal cost Φ")
+                                _TERMINAL_ARGS, t, q, u, p), "terminal cost Φ")
 
     # -- the constraints ------------------------------------------------------------------------
 
@@ -357,37 +361,37 @@ class ShootingProblem(eqx.Module):
         """Whether the problem has path or terminal constraints."""
         return self.path_constraints is not None or self.terminal_constraints is not None
 
-    def path_value(self, t, x, r, p, num_q):
+    def path_value(self, t, q, u, r, p):
         """c(t_k, q_k, u_k, r_k, p) (c ≤ 0), shape (c,); (0,) without path constraints."""
         if self.path_constraints is None:
-            return jnp.zeros((0,), x.dtype)
+            return jnp.zeros((0,), q.dtype)
         return _constraint_value(call(self.path_constraints, "path constraints c",
-                                      self.time_dependent, _RUNNING_ARGS, t, x[:num_q],
-                                      x[num_q:], r, p), "path constraints c")
+                                      self.time_dependent, _RUNNING_ARGS, t, q, u, r, p),
+                                 "path constraints c")
 
-    def terminal_value(self, t, x, p, num_q):
+    def terminal_value(self, t, q, u, p):
         """h(t_N, q_N, u_N, p) (h = 0), shape (e,); (0,) without terminal constraints."""
         if self.terminal_constraints is None:
-            return jnp.zeros((0,), x.dtype)
+            return jnp.zeros((0,), q.dtype)
         return _constraint_value(call(self.terminal_constraints, "terminal constraints h",
-                                      self.time_dependent, _TERMINAL_ARGS, t, x[:num_q],
-                                      x[num_q:], p), "terminal constraints h")
+                                      self.time_dependent, _TERMINAL_ARGS, t, q, u, p),
+                                 "terminal constraints h")
 
-    def node_cost(self, t, x, r, p, num_q):
+    def node_cost(self, t, q, u, r, p):
         """Δt ℓ(t_k, q_k, u_k, r_k, p), the running cost of node k (ℓ = ½‖ρ‖² for a
         residual)."""
-        return self.dt * _as_cost(self.running_value(t, x, r, p, num_q))
+        return self.dt * _as_cost(self.running_value(t, q, u, r, p))
 
-    def final_cost(self, t, x, p, num_q):
+    def final_cost(self, t, q, u, p):
         """Φ(t_N, q_N, u_N, p), the terminal cost (0 when None; ½‖ρ‖² for a residual)."""
-        return _as_cost(self.final_value(t, x, p, num_q))
+        return _as_cost(self.final_value(t, q, u, p))
 
     def cost(self, xs, rs, p, num_q):
         """J = Σ_{k<N} Δt ℓ_k + Φ_N of a trajectory (xs (N+1, n), rs (N, k))."""
         ts = self.times(xs.dtype)
-        running = jax.vmap(self.node_cost, in_axes=(0, 0, 0, None, None))(
-            ts[:-1], xs[:-1], rs, p, num_q)
-        return jnp.sum(running) + self.final_cost(ts[-1], xs[-1], p, num_q)
+        running = jax.vmap(self.node_cost, in_axes=(0, 0, 0, 0, None))(
+            ts[:-1], xs[:-1, :num_q], xs[:-1, num_q:], rs, p)
+        return jnp.sum(running) + self.final_cost(ts[-1], xs[-1, :num_q], xs[-1, num_q:], p)
 
     def rollout(self, x0, rs, p, num_q):
         """The states x_0 … x_N reached from x0 under the inputs rs (a single shooting)."""
@@ -410,8 +414,8 @@ class ShootingProblem(eqx.Module):
 # jax.grad of the optimal cost 27 → 19 s, the first solve with the variational step 10.8 →
 # 9.5 s (benchmarks/LOG.md, "A step traced once").
 @eqx.filter_jit
-def _step(problem, t, x, r, p, num_q):
-    return problem._step(t, x, r, p, num_q)
+def _split_step(problem, t, q, u, r, p):
+    return problem._split_step(t, q, u, r, p)
 
 
 def _residual_is_equations(dynamics) -> bool:
@@ -472,7 +476,7 @@ def _residual(dynamics, t, ud, q, u, r, p):
 
 # Called through `jax.jit`, the stages of a step share one trace of the accelerations and JAX
 # caches the derivatives of that trace (its JVP rule is traced once, not once per stage and
-# per transformation); see `_step`.
+# per transformation); see `_split_step`.
 _accelerations = eqx.filter_jit(accelerations)
 
 

@@ -115,44 +115,61 @@ class Iterate(eqx.Module):
     decrease: jax.Array
 
 
-def _derivatives(value, x, r):
+def _jacobians(f, parts):
+    """(f(*parts), [∂f/∂part for each part]): f linearised once about `parts`, then its linear
+    map differentiated in each part with the others held at zero. Taken apart, a part that f
+    does not depend on through some operation (the speeds, in a hand's position; the inputs,
+    in everything but B r) carries no directions through it, where one Jacobian in all the
+    parts together would carry every direction through every operation; linearised once,
+    the point's own computation (for a robot, its whole dynamics) is traced and compiled
+    once, not once per part."""
+    value, linear = jax.linearize(f, *parts)
+    zeros = tuple(jnp.zeros_like(x) for x in parts)
+
+    def wrt(i):
+        return jax.jacfwd(lambda d: linear(*zeros[:i], d, *zeros[i + 1:]))(zeros[i])
+
+    return value, [wrt(i) for i in range(len(parts))]
+
+
+def _derivatives(value, parts):
     """(gradient, Hessian) of ½‖ρ‖² in the Gauss–Newton form (ρ'ᵀρ, ρ'ᵀρ') when `value`
-    returns a residual ρ, else of the scalar exactly; x and r concatenated."""
-    n = x.shape[0]
+    returns a residual ρ, else of the scalar exactly; in the `parts` (q, u, r) concatenated,
+    each differentiated apart (`_jacobians`)."""
+    if jax.eval_shape(value, *parts).ndim == 0:
+        def gradient(*parts):
+            return jnp.concatenate(jax.grad(value, argnums=tuple(range(len(parts))))(*parts))
 
-    def joint(z):
-        return value(z[:n], z[n:])
-
-    z = jnp.concatenate([x, r])
-    if jax.eval_shape(joint, z).ndim == 0:
-        return jax.grad(joint)(z), jax.hessian(joint)(z)
-    residual, jacobian = joint(z), jax.jacfwd(joint)(z)
+        gradient_value, hessian = _jacobians(gradient, parts)
+        return gradient_value, jnp.concatenate(hessian, axis=1)
+    residual, jacobian = _jacobians(value, parts)
+    jacobian = jnp.concatenate(jacobian, axis=1)
     return jacobian.T @ residual, jacobian.T @ jacobian
 
 
 def expand(problem: ShootingProblem, xs, rs, gaps, p, num_q, *, exact=False) -> Expansion:
     """The dynamics' Jacobians and the costs' derivatives at every node (the Gauss–Newton
-    Hessians of residual costs unless `exact`)."""
+    Hessians of residual costs unless `exact`), each in the coordinates, the speeds and the
+    inputs apart (`_jacobians`)."""
     ts = problem.times(xs.dtype)
     n = xs.shape[1]
 
     def step(t, x, r):
-        return problem.step(t, x, r, p, num_q)
+        _, ((qq, uq), (qu, uu), (qr, ur)) = _jacobians(
+            lambda q, u, r: problem.split_step(t, q, u, r, p), (x[:num_q], x[num_q:], r))
+        return jnp.block([[qq, qu], [uq, uu]]), jnp.concatenate([qr, ur])
 
     def running(t, x, r):
-        if exact:
-            return _derivatives(lambda x, r: problem.node_cost(t, x, r, p, num_q), x, r)
-        gradient, hessian = _derivatives(
-            lambda x, r: problem.running_value(t, x, r, p, num_q), x, r)
-        return problem.dt * gradient, problem.dt * hessian
+        value = problem.node_cost if exact else problem.running_value
+        gradient, hessian = _derivatives(lambda q, u, r: value(t, q, u, r, p),
+                                         (x[:num_q], x[num_q:], r))
+        return (gradient, hessian) if exact else (problem.dt * gradient, problem.dt * hessian)
 
     def final(x):
-        if exact:
-            return _derivatives(lambda x, _: problem.final_cost(ts[-1], x, p, num_q), x,
-                                x[:0])
-        return _derivatives(lambda x, _: problem.final_value(ts[-1], x, p, num_q), x, x[:0])
+        value = problem.final_cost if exact else problem.final_value
+        return _derivatives(lambda q, u: value(ts[-1], q, u, p), (x[:num_q], x[num_q:]))
 
-    fx, fr = jax.vmap(jax.jacfwd(step, argnums=(1, 2)))(ts[:-1], xs[:-1], rs)
+    fx, fr = jax.vmap(step)(ts[:-1], xs[:-1], rs)
     gradient, hessian = jax.vmap(running)(ts[:-1], xs[:-1], rs)
     terminal_x, terminal_xx = final(xs[-1])
     return Expansion(fx=fx, fr=fr, lx=gradient[:, :n], lr=gradient[:, n:],
