@@ -178,12 +178,15 @@ def expand(problem: ShootingProblem, xs, rs, gaps, p, num_q, *, exact=False) -> 
 
 
 def step_curvature(problem: ShootingProblem, t, x, r, weights, p, num_q):
-    """∇²(w · F(t, x, r)) of one step, split as (h_xx, h_rr, h_rx)."""
-    def contracted(x, r):
-        return weights @ problem.step(t, x, r, p, num_q)
+    """∇²(w · F(t, x, r)) of one step, split as (h_xx, h_rr, h_rx); in the coordinates, the
+    speeds and the inputs apart (`_jacobians`)."""
+    def contracted(q, u, r):
+        q_next, u_next = problem.split_step(t, q, u, r, p)
+        return weights[:num_q] @ q_next + weights[num_q:] @ u_next
 
-    (hxx, _), (hrx, hrr) = jax.hessian(contracted, argnums=(0, 1))(x, r)
-    return hxx, hrr, hrx
+    n = x.shape[0]
+    _, hessian = _derivatives(contracted, (x[:num_q], x[num_q:], r))
+    return hessian[:n, :n], hessian[n:, n:], hessian[n:, :n]
 
 
 def dynamics_curvature(problem: ShootingProblem, xs, rs, p, num_q):
