@@ -91,12 +91,14 @@ def test_linear_quadratic_problem_is_the_discrete_riccati_solution(discretisatio
     np.testing.assert_allclose(np.concatenate([solution.q[-1], solution.u[-1]]), x, atol=1e-12)
 
 
-def test_bounded_inputs_solve_the_quadratic_program():
+@pytest.mark.parametrize("bound", [0.8, 1.0, 2.0])
+def test_bounded_inputs_solve_the_quadratic_program(bound):
     """Box-constrained inputs on the linear chain: the optimum is that of the convex quadratic
     program in the inputs (the states eliminated), solved by SciPy's L-BFGS-B; the active
-    bounds hold exactly."""
+    bounds hold exactly. (With the looser bounds the iterates once cycled between two
+    trajectories, each step a rise of the cost that box-DDP's model had predicted.)"""
     a, b = chain_matrices()
-    num, bound = 30, 0.8
+    num = 30
 
     def terminal(q, u, p):
         x = jnp.concatenate([q, u])
@@ -109,15 +111,20 @@ def test_bounded_inputs_solve_the_quadratic_program():
     solution = jaxdyn.solve_optimal_control(problem, x0[:2], x0[2:], CHAIN)
 
     def cost(flat):
-        r, x, total = flat.reshape(num, 2), x0, 0.0
+        """The cost and its gradient in the inputs (the adjoint recursion backwards)."""
+        r, xs, total = flat.reshape(num, 2), [x0], 0.0
         for k in range(num):
-            total += DT * 0.5 * (x @ STATE_WEIGHTS @ x + r[k] @ INPUT_WEIGHTS @ r[k])
-            x = a @ x + b @ r[k]
-        return total + 5.0 * x @ x
+            total += DT * 0.5 * (xs[k] @ STATE_WEIGHTS @ xs[k] + r[k] @ INPUT_WEIGHTS @ r[k])
+            xs.append(a @ xs[k] + b @ r[k])
+        costate, gradient = 10.0 * xs[-1], np.zeros_like(r)
+        for k in reversed(range(num)):
+            gradient[k] = DT * INPUT_WEIGHTS @ r[k] + b.T @ costate
+            costate = DT * STATE_WEIGHTS @ xs[k] + a.T @ costate
+        return total + 5.0 * xs[-1] @ xs[-1], gradient.ravel()
 
     reference = scipy.optimize.minimize(
-        cost, np.zeros(2 * num), method="L-BFGS-B", bounds=[(-bound, bound)] * (2 * num),
-        options=dict(ftol=1e-16, gtol=1e-12, maxiter=5000))
+        cost, np.zeros(2 * num), jac=True, method="L-BFGS-B",
+        bounds=[(-bound, bound)] * (2 * num), options=dict(ftol=1e-16, gtol=1e-12, maxiter=5000))
     assert int(solution.status) == 0
     assert np.sum(np.isclose(np.abs(solution.inputs), bound, rtol=0, atol=1e-12)) >= 2
     assert np.all(np.abs(solution.inputs) <= bound)

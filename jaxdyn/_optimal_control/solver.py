@@ -222,9 +222,10 @@ def _forward(problem, iterate, gains, alpha, lo, hi, p, num_q):
     return xs, rs, problem.cost(xs, rs, p, num_q)
 
 
-def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q, tolerance):
+def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q, tolerance, feasible):
     """The first α in 1, ½, … ¼⁵¹² whose step the acceptance test takes, or none;
-    `tolerance`: the change of the cost below which the solve has converged."""
+    `tolerance`: the change of the cost below which the solve has converged; `feasible`:
+    whether the trajectory has no gaps (a rise of the cost is then never taken)."""
     def trial(i):
         alpha = jnp.asarray(_STEPS, iterate.xs.dtype)[i]
         xs, rs, cost = _forward(problem, iterate, gains, alpha, lo, hi, p, num_q)
@@ -232,8 +233,13 @@ def _line_search(problem, iterate, gains, d1, d2, lo, hi, p, num_q, tolerance):
         change = cost - iterate.cost
         # (with the round-off of the cost as slack: the last steps predict changes below it)
         slack = 1e-14 * jnp.abs(iterate.cost)
-        decreased = jnp.where(predicted < 0, change <= 0.1 * predicted + slack,
-                              change <= 2 * predicted + slack)
+        # A rise the model predicts is taken only while gaps are being closed. On a feasible
+        # trajectory box-DDP's model predicts one where inputs have yet to reach a bound (its
+        # d₁ leaves their gradient out, its d₂ keeps their step), though every step of a
+        # descent lowers the cost: taking such rises let a convex problem's iterates cycle
+        # between two trajectories, the cost rising in turn along each.
+        rise = jnp.where(feasible, slack, 2 * predicted + slack)
+        decreased = jnp.where(predicted < 0, change <= 0.1 * predicted + slack, change <= rise)
         # A change the model puts below what the cost resolves is held to the tolerance, not
         # to the model: the cost's round-off (a stiff penalty's, an unstable rollout's) may
         # exceed the predicted change.
@@ -302,7 +308,8 @@ def _iteration(problem, solver, lo, hi, p, num_q, tol, iterate: Iterate) -> Iter
 
     def step(_):
         new_xs, new_rs, cost, alpha, accepted = _line_search(problem, iterate, gains, d1, d2,
-                                                             lo, hi, p, num_q, tolerance)
+                                                             lo, hi, p, num_q, tolerance,
+                                                             feasible)
         mu = iterate.regularisation
         mu = jnp.where(~accepted | (alpha <= 0.01), _raised(mu),
                        jnp.where(alpha >= 0.5, _lowered(mu), mu))
