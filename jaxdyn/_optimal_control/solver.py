@@ -12,8 +12,9 @@ so that a step of length α closes the fraction α of every gap g (Mastalli et a
 "Crocoddyl: an efficient and versatile framework for multi-contact optimal control",
 ICRA 2020); from a feasible guess the gaps are zero and this is the classical method. A step
 is taken when the cost falls by at least a tenth of the model's prediction (or, where the
-model predicts a rise, as it does while gaps are being closed or inputs move onto their
-bounds, rises by at most twice the prediction), or, where the model predicts a change
+model predicts a rise while gaps are being closed, rises by at most twice the prediction; on
+a feasible trajectory, where box-DDP's model predicts a rise while inputs move onto their
+bounds, when the cost does not rise), or, where the model predicts a change
 below 10⁻¹² |J| and the tolerance, when the cost changes by less than the tolerance: such
 steps are taken as Crocoddyl takes those whose expected improvement is below its
 `th_grad`, since the cost's round-off, amplified along the rollout and by stiff penalties,
